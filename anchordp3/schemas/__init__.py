@@ -1,0 +1,1 @@
+"""Typed data contracts shared by every room: configs, records, layouts. Imports nothing of ours."""

@@ -1,0 +1,16 @@
+"""The task registry: name → ``Task`` class."""
+
+from __future__ import annotations
+
+from anchordp3.sim.tasks.base import Task
+from anchordp3.sim.tasks.blocks import BlocksRankingRGB, StackBlocksThree
+
+TASKS: dict[str, type[Task]] = {t.name: t for t in (StackBlocksThree, BlocksRankingRGB)}
+
+
+def get_task(name: str) -> type[Task]:
+    """The task class called ``name``; a clear error lists the known tasks."""
+    try:
+        return TASKS[name]
+    except KeyError:
+        raise ValueError(f"task: unknown task {name!r}; choose one of {sorted(TASKS)}") from None

@@ -1,0 +1,77 @@
+"""The ``Task`` base class: build the scene, name its critical objects, plan the expert, check success."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import ClassVar
+
+import numpy as np
+
+from anchordp3.sim.clutter import add_clutter
+from anchordp3.sim.expert import Expert
+from anchordp3.sim.world import World
+
+
+class Task(ABC):
+    """One manipulation task on a ``World``.
+
+    Subclasses set ``name``, ``description`` (one sentence a person would say), ``step_limit`` (control
+    steps) and implement the four methods below. ``setup()`` builds the task objects, then clutter
+    outside their areas (``keep_out``).
+    """
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+    step_limit: ClassVar[int]
+
+    def __init__(self, world: World):
+        self.world = world
+        self.rng = world.layout_rng
+        self.keep_out: list[tuple[tuple[float, float], float]] = []
+
+    def setup(self) -> None:
+        """Build the task objects, then clutter as the world's randomization asks."""
+        self.build()
+        self.clutter = add_clutter(self.world, self.keep_out, self.world.cfg.randomization.clutter_max)
+
+    @abstractmethod
+    def build(self) -> None:
+        """Create the task's objects from ``self.rng``; fill ``self.keep_out`` with the areas
+        (object places, targets) clutter must avoid."""
+
+    @abstractmethod
+    def critical_objects(self) -> list[str]:
+        """Names of the task-critical objects (the robot counts as critical too, implicitly)."""
+
+    @abstractmethod
+    def plan(self, expert: Expert) -> None:
+        """Run the expert's atomic operations to solve the task (raises ``ExpertFailure``)."""
+
+    @abstractmethod
+    def check_success(self) -> bool:
+        """Whether the scene is in a success state now."""
+
+    def instruction(self) -> str:
+        """A language description of this episode's goal."""
+        return self.description
+
+    # ----------------------------------------------------------------------------- helpers
+    def table_xy(self, lo: tuple[float, float], hi: tuple[float, float], avoid: list[tuple[tuple[float, float], float]],
+                 radius: float, tries: int = 100) -> tuple[float, float]:
+        """A uniform random table position in the box ``lo..hi`` clear of the circles in ``avoid``."""
+        noise = self.world.cfg.randomization.object_pose_noise
+        lo = (lo[0] - noise, lo[1] - noise)
+        hi = (hi[0] + noise, hi[1] + noise)
+        for _ in range(tries):
+            xy = (float(self.rng.uniform(lo[0], hi[0])), float(self.rng.uniform(lo[1], hi[1])))
+            if all(np.hypot(xy[0] - c[0], xy[1] - c[1]) > r + radius for c, r in avoid):
+                return xy
+        raise RuntimeError(f"{self.name}: no free table position after {tries} tries")
+
+    def random_yaw(self) -> float:
+        """A yaw angle within the randomization's range, radians."""
+        return float(np.deg2rad(self.rng.uniform(-1, 1) * self.world.cfg.randomization.object_yaw_range_deg))
+
+    def gripper_open(self, arm: str, threshold: float = 0.8) -> bool:
+        """Whether ``arm``'s gripper is (nearly) open."""
+        return self.world.robot.gripper(arm) > threshold
