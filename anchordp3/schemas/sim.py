@@ -40,3 +40,10 @@ class WorldConfig(BaseModel):
     cameras: CameraRigConfig = Field(default_factory=CameraRigConfig, description="The four RGB-D views.")
     sim: SimConfig = Field(default_factory=SimConfig, description="Physics and control timing.")
     randomization: RandomizationConfig = Field(default_factory=RandomizationConfig, description="Domain randomization.")
+
+
+def world_config(preset_name: str = "clean", **overrides) -> WorldConfig:
+    """A default ``WorldConfig`` with the named randomization preset and optional field overrides."""
+    from anchordp3.schemas.randomization import preset
+
+    return WorldConfig(randomization=preset(preset_name), **overrides)

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from anchordp3.schemas.episode import AnchorTag
 from anchordp3.schemas.state import ARMS
 from anchordp3.sim.world import World
 
@@ -30,16 +31,6 @@ class ExpertFailure(Exception):
     def __init__(self, reason: str, detail: str = ""):
         super().__init__(f"{reason}: {detail}" if detail else reason)
         self.reason, self.detail = reason, detail
-
-
-@dataclass(frozen=True)
-class AnchorTag:
-    """The end of one atomic operation: keypose ``name`` of ``arm`` (or ``both``) reached at control
-    step ``t``, i.e. after ``actions[:t]`` were executed; its label is ``actions[t - 1]``."""
-
-    name: str
-    arm: str
-    t: int
 
 
 @dataclass
@@ -99,7 +90,7 @@ class Expert:
         self.traj.states.append(self.robot.state())
 
     def _tag(self, name: str, arm: str) -> None:
-        self.traj.anchors.append(AnchorTag(name, arm, len(self.traj.actions)))
+        self.traj.anchors.append(AnchorTag(name=name, arm=arm, t=len(self.traj.actions)))
 
     def _arm_q(self, arm: str) -> np.ndarray:
         return self.target[self.layout.qpos(arm)]

@@ -58,6 +58,7 @@ class World:
         self._build_room()
         self.robot = Robot(self.scene, cfg.robot, render)
         self.objects: dict[str, sapien.Entity] = {}
+        self.markers: dict[str, sapien.Entity] = {}
         self.lights: Lights | None = None
         self.cameras: CameraRig | None = None
         if render:
@@ -92,6 +93,13 @@ class World:
         e = build_actor(self.scene, name, parts, pose, body=body, render=self.render, density=density, friction=friction)
         self.objects[name] = e
         return e
+
+    def add_marker(self, name: str, parts: list[Part], pose: sapien.Pose) -> None:
+        """A visual-only static object (e.g. a target pad): seen by cameras, absent from physics,
+        and not built at all in physics-only worlds."""
+        if self.render:
+            self.markers[name] = build_actor(self.scene, name, [Part(p.kind, p.size, p.pose, p.rgba, collide=False) for p in parts],
+                                             pose, body="static", render=True)
 
     # ----------------------------------------------------------------------------- stepping
     def step(self, n: int = 1) -> None:
@@ -139,8 +147,9 @@ class World:
         return self.cameras.capture(segmentation)
 
     def entity_ids(self, names: list[str], include_robot: bool = False) -> set[int]:
-        """Segmentation ids (per-entity ``per_scene_id``) of the named objects, plus the robot's links."""
-        ids = {self.objects[n].per_scene_id for n in names}
+        """Segmentation ids (per-entity ``per_scene_id``) of the named objects and markers, plus the robot's links."""
+        ids = {self.objects[n].per_scene_id for n in names if n in self.objects}
+        ids |= {self.markers[n].per_scene_id for n in names if n in self.markers}
         if include_robot:
             ids |= {link.entity.per_scene_id for link in self.robot.articulation.links}
         return ids

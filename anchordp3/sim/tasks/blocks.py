@@ -53,7 +53,7 @@ class _BlocksTask(Task):
         self.keep_out = avoid
 
     def critical_objects(self) -> list[str]:
-        return list(self.blocks)
+        return [*self.blocks, "target"]
 
     def _block_xyz(self, name: str) -> np.ndarray:
         return np.asarray(self.world.objects[name].pose.p, dtype=np.float64)
@@ -79,6 +79,8 @@ class StackBlocksThree(_BlocksTask):
     def build(self) -> None:
         self.target = np.array(self.table_xy((-0.08, -0.12), (0.08, -0.02), [], radius=0.0))
         self.keep_out = [(tuple(self.target), 0.08)]
+        self.world.add_marker("target", [Part("box", (0.035, 0.035, 0.0005), rgba=(0.95, 0.95, 0.95, 1.0))],
+                              sapien.Pose([*self.target, self.world.table_top + 0.0005]))
         self._build_blocks((-0.32, -0.1), (0.32, 0.2))
 
     def plan(self, expert: Expert) -> None:
@@ -110,6 +112,8 @@ class BlocksRankingRGB(_BlocksTask):
         cx, cy = self.table_xy((-0.05, -0.13), (0.05, -0.08), [], radius=0.0)
         self.row = [np.array([cx + (i - 1) * self.spacing, cy]) for i in range(3)]
         self.keep_out = [((cx, cy), 0.16)]
+        self.world.add_marker("target", [Part("box", (1.5 * self.spacing, 0.035, 0.0005), rgba=(0.95, 0.95, 0.95, 1.0))],
+                              sapien.Pose([cx, cy, self.world.table_top + 0.0005]))
         self._build_blocks((-0.32, 0.0), (0.32, 0.2))
 
     def plan(self, expert: Expert) -> None:

@@ -1,0 +1,96 @@
+"""Depth images to world-frame point clouds, multi-view fusion and workspace cropping.
+
+Camera convention (OpenCV): x right, y down, z forward; pixel (u, v) = (column, row) with integer
+coordinates at pixel centres; depth is the z coordinate in the camera frame (not the ray length).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+
+class Cloud(NamedTuple):
+    """A point cloud with optional per-point attributes (M points)."""
+
+    points: np.ndarray
+    """(M, 3) float32, world frame, metres."""
+    colors: np.ndarray | None
+    """(M, 3) float32 in [0, 1], or None."""
+    labels: np.ndarray | None
+    """(M,) uint8 mask / segmentation values, or None."""
+
+
+def backproject(
+    depth: np.ndarray,
+    K: np.ndarray,
+    cam2world: np.ndarray,
+    rgb: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+) -> Cloud:
+    """Back-project every valid depth pixel to a world point: p = R^-1 (K^-1 [u v 1]^T d - t).
+
+    [R | t] is the world-to-camera transform, i.e. ``cam2world = [[R^T, -R^T t], [0, 1]]``.
+
+    depth: (H, W) float, metres along the optical axis; 0 or non-finite = no hit (skipped).
+    K: (3, 3) OpenCV intrinsics.
+    cam2world: (4, 4) rigid transform, OpenCV camera frame -> world.
+    rgb: optional (H, W, 3) uint8 (0-255) or float (0-1) colours.
+    mask: optional (H, W) bool / integer label image; carried along as uint8 labels.
+    Returns: Cloud with M = number of valid pixels, in row-major pixel order.
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got {depth.shape}")
+    h, w = depth.shape
+    valid = np.isfinite(depth) & (depth > 0)
+    v, u = np.nonzero(valid)
+    d = depth[v, u].astype(np.float64)
+
+    cam2world = np.asarray(cam2world, dtype=np.float64)
+    # World point = R_c2w (d K^-1 [u v 1]^T) + t_c2w; fold R_c2w K^-1 into one 3x3 matrix.
+    ray2world = cam2world[:3, :3] @ np.linalg.inv(np.asarray(K, dtype=np.float64))
+    pix = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64)
+    points = (pix @ ray2world.T) * d[:, None] + cam2world[:3, 3]
+
+    colors = None
+    if rgb is not None:
+        rgb = np.asarray(rgb)
+        if rgb.shape != (h, w, 3):
+            raise ValueError(f"rgb must be {(h, w, 3)}, got {rgb.shape}")
+        colors = rgb[v, u].astype(np.float32)
+        if np.issubdtype(rgb.dtype, np.integer):
+            colors /= 255.0
+    labels = None
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != (h, w):
+            raise ValueError(f"mask must be {(h, w)}, got {mask.shape}")
+        labels = mask[v, u].astype(np.uint8)
+    return Cloud(points.astype(np.float32), colors, labels)
+
+
+def fuse_views(views: Sequence[Cloud]) -> Cloud:
+    """Concatenate several back-projected views (same world frame) into one cloud.
+
+    views: non-empty sequence of Cloud; colours / labels are kept only if every view has them.
+    Returns: Cloud with M = sum of the views' point counts, views in the given order.
+    """
+    if not views:
+        raise ValueError("fuse_views needs at least one view")
+    points = np.concatenate([c.points for c in views], axis=0)
+    colors = None if any(c.colors is None for c in views) else np.concatenate([c.colors for c in views], axis=0)
+    labels = None if any(c.labels is None for c in views) else np.concatenate([c.labels for c in views], axis=0)
+    return Cloud(points, colors, labels)
+
+
+def crop_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Keep-mask of the points inside an axis-aligned box (bounds inclusive).
+
+    points: (M, 3) float, metres; lo, hi: (3,) box corners, metres.
+    Returns: (M,) bool.
+    """
+    points = np.asarray(points)
+    return np.all((points >= np.asarray(lo)) & (points <= np.asarray(hi)), axis=1)

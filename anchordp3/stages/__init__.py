@@ -1,0 +1,1 @@
+"""One module per stage: plain functions that turn input items into output items. No Ray here."""

@@ -1,0 +1,1 @@
+"""Pictures for people: camera mosaics, point clouds, curves. numpy + PIL/matplotlib only."""
