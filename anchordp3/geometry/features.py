@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from anchordp3.geometry.sampling import farthest_point_sample
 
 # Relative eigen-gap (l_mid - l_min) / (l_max - l_min) below which the closed-form normal is
-# recomputed with LAPACK; the closed form's error grows like 1e-16 / gap^2.
+# recomputed with LAPACK (the closed form loses accuracy roughly like 1e-16 / gap^2).
 _MIN_REL_GAP = 1e-4
 
 
@@ -57,16 +57,17 @@ def normals_pca(points: np.ndarray, nbr_idx: np.ndarray, viewpoint: np.ndarray |
     Returns: (Q, 3) float64 unit normals.
     """
     nbr_idx = np.asarray(nbr_idx)
-    coords = np.asarray(points, dtype=np.float64).T.copy()  # (3, M): contiguous per-axis gathers
-    x, y, z = (np.take(c, nbr_idx) for c in coords)  # (Q, K) each
-    mean_w = np.full(nbr_idx.shape[1], 1.0 / nbr_idx.shape[1])
-    for c in (x, y, z):
-        c -= (c @ mean_w)[:, None]
     k = nbr_idx.shape[1]
-    cov = [np.einsum("qk,qk->q", a, b) / k for a, b in ((x, x), (y, y), (z, z), (x, y), (x, z), (y, z))]
+    # Axis-major layout: (3, Q, K) gathers and per-axis einsum reductions measured ~3x faster than
+    # (Q, K, 3) with matmul, and avoid BLAS calls on tiny matrices.
+    coords = np.asarray(points, dtype=np.float64).T.copy()  # (3, M)
+    nbrs = np.take(coords, nbr_idx, axis=1)  # (3, Q, K)
+    nbrs -= np.einsum("iqk->iq", nbrs)[:, :, None] / k
+    pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+    cov = [np.einsum("qk,qk->q", nbrs[a], nbrs[b]) / k for a, b in pairs]  # C00, C11, C22, C01, C02, C12
     normals = _smallest_eigenvectors(*cov)
     if viewpoint is not None:
-        to_view = np.asarray(viewpoint, dtype=np.float64) - coords.T[nbr_idx[:, 0]]
+        to_view = np.asarray(viewpoint, dtype=np.float64) - coords[:, nbr_idx[:, 0]].T
         normals[np.einsum("qi,qi->q", normals, to_view) < 0] *= -1.0
     return normals
 

@@ -70,7 +70,7 @@ class RobotSpec(BaseModel):
     def urdf_path(self) -> Path:
         """The resolved URDF file."""
         p = Path(self.urdf)
-        return p if p.is_absolute() or p.exists() else ASSETS_DIR / p
+        return (p if p.is_absolute() or p.exists() else ASSETS_DIR / p).resolve()
 
     @property
     def dof(self) -> int:
@@ -99,18 +99,36 @@ class RobotSpec(BaseModel):
             root = ET.parse(path).getroot()
         except ET.ParseError as e:
             raise ValueError(f"urdf: {path} is not valid XML ({e})") from None
-        joints = {j.get("name"): j.get("type") for j in root.iter("joint")}
+        joints = {j.get("name"): j for j in root.iter("joint")}
         links = {link.get("name") for link in root.iter("link")}
+        named = self.left.joints + self.left.gripper_joints + self.right.joints + self.right.gripper_joints
+        if len(set(named)) != len(named):
+            raise ValueError("joints: every arm and gripper joint must be named once, across both arms")
         for side in ARMS:
             arm = self.arm(side)
             for j in arm.joints + arm.gripper_joints:
                 if j not in joints:
                     raise ValueError(f"{side}: joint {j!r} is not in {path.name}")
-                if joints[j] == "fixed":
+                if joints[j].get("type") == "fixed":
                     raise ValueError(f"{side}: joint {j!r} is fixed, an actuated joint is needed")
             if arm.ee_link not in links:
                 raise ValueError(f"{side}.ee_link: link {arm.ee_link!r} is not in {path.name}")
+            for j, q in zip(arm.joints, arm.home_qpos):
+                _check_limit(joints[j], q, f"{side}.home_qpos")
+            for j in arm.gripper_joints:
+                for q, name in ((arm.gripper_open, "gripper_open"), (arm.gripper_closed, "gripper_closed")):
+                    _check_limit(joints[j], q, f"{side}.{name}")
         return self
+
+
+def _check_limit(joint: ET.Element, q: float, field: str) -> None:
+    """Raise when ``q`` lies outside the URDF ``<limit>`` of ``joint`` (continuous joints have none)."""
+    lim = joint.find("limit")
+    if joint.get("type") == "continuous" or lim is None or lim.get("lower") is None:
+        return
+    lo, hi = float(lim.get("lower")), float(lim.get("upper"))
+    if not lo - 1e-9 <= q <= hi + 1e-9:
+        raise ValueError(f"{field}: {q} is outside joint {joint.get('name')!r} limits [{lo}, {hi}]")
 
 
 def default_robot() -> RobotSpec:

@@ -140,8 +140,13 @@ class Expert:
         self._hold()
         self._tag(name, self._arm_label(values))
 
-    def _hold(self) -> None:
-        for _ in range(self.hold_steps):
+    def _hold(self, tol: float = 0.01, max_steps: int = 25) -> None:
+        """Hold the target for ``hold_steps`` control steps, then until every arm joint is within
+        ``tol`` radians of it (at most ``max_steps`` in all), so anchors are states actually reached."""
+        arms = np.concatenate([np.arange(self.layout.dim)[self.layout.qpos(a)] for a in ARMS])
+        for i in range(max_steps):
+            if i >= self.hold_steps and float(np.abs(self.traj.states[-1][arms] - self.target[arms]).max()) < tol:
+                break
             self._step(self.target.copy())
 
     def _solve(self, arm: str, pose: np.ndarray) -> np.ndarray:

@@ -28,10 +28,15 @@ class _PhysicsOnlyScene(sapien.Scene):
             self.remove_entity(e)
 
 
+_RENDERER: list = []  # one renderer per process: SAPIEN frees it (and its compiled shaders) with the last scene
+
+
 def _make_scene(render: bool) -> sapien.Scene:
     if not render:
         return _PhysicsOnlyScene([sapien.physx.PhysxCpuSystem()])
     try:
+        if not _RENDERER:
+            _RENDERER.append(sapien.render.SapienRenderer())
         return sapien.Scene()
     except RuntimeError as e:
         raise RuntimeError(
