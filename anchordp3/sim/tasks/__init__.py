@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from anchordp3.sim.tasks.base import Task
 from anchordp3.sim.tasks.blocks import BlocksRankingRGB, StackBlocksThree
+from anchordp3.sim.tasks.place_object_scale import PlaceBell, PlaceMouse, PlaceStapler
 
-TASKS: dict[str, type[Task]] = {t.name: t for t in (StackBlocksThree, BlocksRankingRGB)}
+TASKS: dict[str, type[Task]] = {t.name: t for t in (StackBlocksThree, BlocksRankingRGB, PlaceMouse, PlaceStapler, PlaceBell)}
 
 
 def get_task(name: str) -> type[Task]:
