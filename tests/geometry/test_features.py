@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from anchordp3.geometry.features import _smallest_eigenvectors, curvature_features, knn, normals_pca, point_features
+from anchordp3.geometry.features import (
+    _smallest_eigenvectors,
+    curvature_features,
+    knn,
+    normals_pca,
+    point_features,
+)
 from anchordp3.geometry.reference import reference_features, synthetic_tabletop
 
 EPS = 1e-5

@@ -11,10 +11,11 @@ H, W = 48, 64
 K = np.array([[60.0, 0.0, 31.5], [0.0, 62.0, 23.5], [0.0, 0.0, 1.0]])
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """(4, 4) OpenCV camera-to-world pose at ``eye`` looking at ``target`` (x right, y down, z forward)."""
+def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(4, 4) OpenCV camera-to-world pose at ``eye`` looking at ``target`` (x right, y down, z
+    forward), image up roughly along world +z."""
     z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, up)
+    x = np.cross(z, [0.0, 0.0, 1.0])
     x /= np.linalg.norm(x)
     pose = np.eye(4)
     pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])

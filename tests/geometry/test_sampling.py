@@ -8,7 +8,10 @@ from scipy.spatial.distance import pdist
 
 from anchordp3.geometry import sampling
 from anchordp3.geometry.reference import reference_fps, synthetic_tabletop
-from anchordp3.geometry.sampling import farthest_point_sample, farthest_point_sample_numpy
+from anchordp3.geometry.sampling import (
+    farthest_point_sample,
+    farthest_point_sample_numpy,
+)
 
 
 @pytest.fixture(scope="module")
