@@ -3,7 +3,8 @@
 The default backend is ``fpsample.bucket_fps_kdline_sampling`` ("QuickFPS"): exact FPS (every pick
 is the point farthest from all earlier picks, float32 distances), single-threaded about 30 ms
 for 150k points to 4096, against 1.5 s for ``fpsample.fps_sampling`` and 0.5-1 s for open3d's
-legacy ``farthest_point_down_sample`` (same picks); the other fpsample variants were slower. Without ``fpsample`` a numpy loop (same picks, O(n*M)) is used.
+legacy ``farthest_point_down_sample`` (same picks); the other fpsample variants were slower.
+Without ``fpsample`` a numpy loop (same picks, O(n*M)) is used.
 
 fpsample (1.0.x) builds its kd-tree in place before reading the start point, so the first pick is
 the point at position ``start`` of the *reordered* cloud, not ``points[start]``. That choice is
