@@ -9,7 +9,7 @@ from anchordp3.schemas.randomization import preset
 from anchordp3.schemas.sim import WorldConfig
 from anchordp3.sim.episode import build, run_expert
 from anchordp3.sim.tasks import get_task
-from anchordp3.sim.tasks.blocks import entity_yaw, yaw_pose
+from anchordp3.sim.poses import entity_yaw, yaw_pose
 from anchordp3.sim.tasks.place_object_scale import _PlaceOnScale
 from anchordp3.sim.world import World
 

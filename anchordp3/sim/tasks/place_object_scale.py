@@ -21,7 +21,7 @@ import sapien
 from anchordp3.sim.actors import Part, pose_matrix
 from anchordp3.sim.expert import Expert, top_down_pose
 from anchordp3.sim.tasks.base import Task
-from anchordp3.sim.tasks.blocks import HOME_FINGER_YAW, entity_yaw, grasp_yaw, yaw_pose
+from anchordp3.sim.poses import HOME_FINGER_YAW, entity_yaw, grasp_yaw, yaw_pose
 
 UPRIGHT = (0.7071068, 0.0, 0.7071068, 0.0)  # turns a part's x axis (a cylinder's axis) to vertical
 ACROSS = (0.7071068, 0.0, 0.0, 0.7071068)  # turns a part's x axis to the frame's y axis
