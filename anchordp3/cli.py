@@ -88,6 +88,20 @@ def snapshot(
 
 @app.command()
 @cli_errors
+def show(
+    path: Path = typer.Argument(..., help="A run directory, a rendered-frames file (render/frames/…npz) or a features file."),
+    frame: int = typer.Option(0, help="Frame index within the episode's file."),
+    episode: str = typer.Option(None, help="In a run directory: the episode as TASK/SEED (default: the first rendered one)."),
+    out: Path = typer.Option(Path("frame.png"), help="PNG file to write."),
+) -> None:
+    """Picture of one frame: camera images, critical masks, the fused cloud by colour and by label."""
+    from anchordp3.pipeline.show import show_frame
+
+    typer.echo(f"wrote {show_frame(path, out, frame, episode)}")
+
+
+@app.command()
+@cli_errors
 def demo(
     out: Path = typer.Option(Path("runs/demo"), help="Run directory."),
     seeds: str = typer.Option("0-4", help="Seeds per task."),

@@ -26,12 +26,17 @@ from anchordp3.geometry.sampling import farthest_point_sample
 # Relative eigen-gap (l_mid - l_min) / (l_max - l_min) below which the closed-form normal is
 # recomputed with LAPACK (the closed form loses accuracy roughly like 1e-16 / gap^2).
 _MIN_REL_GAP = 1e-4
+# Extra neighbours queried so that ties at the k-th distance are broken by index, not tree layout.
+_TIE_MARGIN = 4
 # Entries (row, column) of a symmetric 3x3 matrix, in the order the helpers below use.
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 
 def knn(points: np.ndarray, k: int, query_idx: np.ndarray | None = None, tree: cKDTree | None = None) -> np.ndarray:
     """Indices of the k nearest neighbours (the query point itself included, nearest first).
+
+    Ties in distance are broken by the smaller index, so the neighbourhood does not depend on the
+    tree's layout (rendered depth grids have many equidistant neighbours).
 
     points: (M, 3) float, metres.
     k: neighbours per query; reduced to M when the cloud has fewer points.
@@ -44,8 +49,13 @@ def knn(points: np.ndarray, k: int, query_idx: np.ndarray | None = None, tree: c
     if tree is None:
         tree = cKDTree(points, balanced_tree=False)  # unbalanced: ~2x faster build, same queries
     queries = points if query_idx is None else points[query_idx]
-    _, idx = tree.query(queries, k, workers=-1)
-    return idx.reshape(len(queries), k).astype(np.int64, copy=False)
+    extra = min(k + _TIE_MARGIN, len(points))
+    dist, idx = tree.query(queries, extra, workers=-1)
+    dist, idx = dist.reshape(len(queries), extra), idx.reshape(len(queries), extra).astype(np.int64, copy=False)
+    if extra > k:
+        order = np.lexsort((idx, dist), axis=1)[:, :k]  # by distance, then index
+        idx = np.take_along_axis(idx, order, axis=1)
+    return idx
 
 
 def normals_pca(points: np.ndarray, nbr_idx: np.ndarray, viewpoint: np.ndarray | None = None) -> np.ndarray:
@@ -102,6 +112,7 @@ def point_features(
     k: int = 16,
     viewpoint: np.ndarray | None = None,
     seed: int = 0,
+    eps: float = 1e-5,
 ) -> tuple[np.ndarray, np.ndarray]:
     """FPS-downsample a cloud and compute the 11-d features of the samples only.
 
@@ -116,6 +127,7 @@ def point_features(
     viewpoint: (3,) metres, normals point towards it; None = unoriented.
     seed: picks the FPS start index (``numpy.random.default_rng(seed)``); same inputs and seed
         give the same output.
+    eps: ε of the curvature features log(λ + ε).
     Returns: idx (n_samples,) int64 into ``points``, and features (n_samples, 11) float32 with
         columns x, y, z, r, g, b, nx, ny, nz, c1, c2.
     """
@@ -132,7 +144,7 @@ def point_features(
     sample_nbrs = knn(points, k, idx, tree)  # (n, K)
     needed, local = _distinct_in_leaf_order(sample_nbrs, tree)
     normals = normals_pca(points, knn(points, k, needed, tree), viewpoint)  # (U, 3)
-    curvature = curvature_features(normals, local)  # row i: neighbourhood of sample i
+    curvature = curvature_features(normals, local, eps)  # row i: neighbourhood of sample i
     feats = np.concatenate([points[idx], colors[idx], normals[local[:, 0]], curvature], axis=1)
     return idx, feats.astype(np.float32)
 

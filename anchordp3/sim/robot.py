@@ -78,6 +78,14 @@ class Robot:
         for joint, x in zip(self._joints, self._target):
             joint.set_drive_target(float(x))
 
+    def drive_targets(self) -> np.ndarray:
+        """Every active joint's raw drive target (a copy), for ``restore_drive_targets``."""
+        return self._target.copy()
+
+    def restore_drive_targets(self, targets: np.ndarray) -> None:
+        """Re-command raw drive targets saved by ``drive_targets`` (bit-exact)."""
+        self._apply(np.asarray(targets, dtype=np.float64))
+
     def joint_target(self) -> np.ndarray:
         """The joint-space action currently commanded, ``(2 * (dof + 1),)``."""
         L = self.layout

@@ -1,0 +1,86 @@
+"""Configuration of the data stages after rollout: anchors (frame plan), render, features."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+FrameKind = Literal["expert", "dagger"]
+FRAME_KINDS: tuple[str, ...] = ("expert", "dagger")  # index = the ``kind`` code stored in arrays
+
+
+class KinematicTagConfig(BaseModel):
+    """Anchor tagging from motion alone, for demonstrations without operation labels."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    rest_joint_speed: float = Field(default=2e-3, gt=0, description="Arm joint change per control step below which an arm is at rest, radians.")
+    rest_gripper_speed: float = Field(default=2e-3, gt=0, description="Normalised gripper change per control step below which a gripper is at rest.")
+    rest_command_change: float = Field(default=1e-4, gt=0, description="Change of a commanded joint or gripper per control step below which the command holds still.")
+    use_commands: bool = Field(default=True, description="Tag from the commanded actions when the data has them (else from measured states).")
+    min_rest_steps: int = Field(default=2, ge=1, description="Control steps the robot must stay at rest for a rest period to count.")
+
+
+class DaggerConfig(BaseModel):
+    """Off-trajectory (DAgger) frames: the arm is sent to a wrong pose, observed, then restored."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    fraction: float = Field(default=0.1, ge=0, le=1, description="Probability that an expert frame also gets a DAgger frame at the same step.")
+    wrong_affordance_prob: float = Field(default=0.5, ge=0, le=1, description="Share of DAgger frames aimed at a wrong object rather than near the right target.")
+    offset_range: tuple[float, float] = Field(default=(0.03, 0.08), description="Distance of a near-target perturbation from the target, metres (min, max).")
+    yaw_range_deg: float = Field(default=25.0, ge=0, description="Largest extra gripper yaw of a perturbation, degrees.")
+    hover: tuple[float, float] = Field(default=(0.02, 0.08), description="Height above a wrong object that the gripper is sent to, metres (min, max).")
+    steps: int = Field(default=20, ge=2, description="Control steps of the motion to the wrong pose.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "DaggerConfig":
+        for name in ("offset_range", "hover"):
+            lo, hi = getattr(self, name)
+            if not 0 <= lo <= hi:
+                raise ValueError(f"{name}: expected 0 <= min <= max, got {(lo, hi)}")
+        return self
+
+
+class AnchorsConfig(BaseModel):
+    """Anchor tagging and the frame plan of every kept episode."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    source: Literal["symbolic", "kinematic"] = Field(default="symbolic", description="Anchors from the expert's operation tags, or from motion alone.")
+    horizon: int = Field(default=8, ge=1, description="H: next anchors each frame is labelled with (padded with the last anchor).")
+    frames_per_interval: int = Field(default=2, ge=1, description="Random frames drawn inside each interval between consecutive anchors.")
+    seed: int = Field(default=0, ge=0, description="Seed of the frame draws (combined with task and episode seed).")
+    dagger: DaggerConfig = Field(default_factory=DaggerConfig, description="DAgger frames.")
+    kinematic: KinematicTagConfig = Field(default_factory=KinematicTagConfig, description="Kinematic tagging thresholds.")
+
+
+class RenderConfig(BaseModel):
+    """Sparse rendering of the planned frames."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    mask_method: Literal["segmentation", "depth_diff"] = Field(default="segmentation", description="Critical-object masks from SAPIEN's segmentation buffer (one render) or the report's re-render-with-objects-hidden depth difference.")
+    depth_diff_tolerance: float = Field(default=1e-5, gt=0, description="Depth change (metres) above which a pixel counts as critical in the depth-difference method.")
+    include_robot: bool = Field(default=True, description="Whether the robot's links count as task-critical (the report includes the robot body).")
+    keep_frames: bool = Field(default=True, description="Keep RGB/depth/mask per frame after features are durable (auditability); False discards them (disk).")
+
+
+class FeaturesConfig(BaseModel):
+    """Back-projection, fusion, cropping, per-point features and downsampling."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    n_points: int = Field(default=4096, ge=16, description="N: points per frame after farthest point sampling.")
+    k: int = Field(default=16, ge=3, description="K: neighbours of the PCA normal and curvature features.")
+    eps: float = Field(default=1e-5, gt=0, description="ε in the curvature features log(λ + ε).")
+    workspace_lo: tuple[float, float, float] = Field(default=(-0.65, -0.55, 0.55), description="Lower corner of the crop box, world frame, metres.")
+    workspace_hi: tuple[float, float, float] = Field(default=(0.65, 0.5, 1.5), description="Upper corner of the crop box, world frame, metres.")
+    normal_view: str = Field(default="head", description="Normals are oriented towards the centre of this camera.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "FeaturesConfig":
+        if any(lo >= hi for lo, hi in zip(self.workspace_lo, self.workspace_hi)):
+            raise ValueError(f"workspace_lo must be below workspace_hi on every axis, got {self.workspace_lo} / {self.workspace_hi}")
+        return self

@@ -1,0 +1,75 @@
+"""Render stage: replay a kept episode and render only its planned frames from every camera.
+
+Input item: a kept episode (rollout arrays) and its frame plan (anchor stage). Output item:
+``frames/<task>/<seed:06d>.npz`` with F planned frames and V views:
+
+- ``rgb (F, V, H, W, 3) uint8``; ``depth (F, V, H, W) float32`` metres, 0 = no hit;
+- ``mask (F, V, H, W) uint8``: 1 on task-critical objects (and the robot, by default);
+- ``K (F, V, 3, 3) float64`` OpenCV intrinsics; ``cam2world (F, V, 4, 4) float64``;
+- ``state (F, 32) float32`` the robot state observed (perturbed for DAgger frames);
+- ``anchors (F, H, 32) float32`` labels; ``t (F,) int64``; ``kind (F,) uint8`` (0 expert, 1 DAgger);
+- ``perturbed (F,) bool`` whether a DAgger frame's wrong pose was reached; ``views (V,)`` names.
+
+The replayed states must equal the recorded ones (checked), so the frames show the episode that
+was kept.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from anchordp3.schemas.episode import EpisodeRecord
+from anchordp3.schemas.sim import WorldConfig
+from anchordp3.schemas.stages import FRAME_KINDS, AnchorsConfig, RenderConfig
+from anchordp3.sim.frames import FrameRequest, render_frames
+from anchordp3.stages.anchors import load_plan
+from anchordp3.stages.files import save_npz
+from anchordp3.stages.rollout import load_episode
+
+REPLAY_TOLERANCE = 1e-5  # largest |replayed - recorded| state difference accepted
+
+
+def frames_file(task: str, seed: int) -> str:
+    """Path of an episode's rendered frames relative to the stage folder."""
+    return f"frames/{task}/{seed:06d}.npz"
+
+
+def run_render(record: EpisodeRecord, rollout_dir: Path, plan_path: Path, out_dir: Path, world: WorldConfig,
+               cfg: RenderConfig, anchors_cfg: AnchorsConfig = AnchorsConfig(),
+               on_frame: Callable[[int], None] | None = None) -> str:
+    """Render one episode's planned frames and write them; returns the output's relative path."""
+    episode = load_episode(rollout_dir, record)
+    plan = load_plan(plan_path)
+    requests = [
+        FrameRequest(t=int(t), kind=kind, arm=arm, mode=mode, seed=int(s), target_state=labels[0].astype(np.float64))
+        for t, kind, arm, mode, s, labels in zip(plan.t, plan.kind, plan.dagger_arm, plan.dagger_mode, plan.dagger_seed, plan.anchors)
+    ]
+    frames, states = render_frames(record.task, record.seed, world, episode["actions"], requests, cfg, anchors_cfg.dagger, on_frame)
+    err = float(np.abs(states - episode["states"]).max())
+    if err > REPLAY_TOLERANCE:
+        raise RuntimeError(f"{record.episode_id}: replay diverged from the recorded episode by {err:.2e}")
+    arrays = {
+        "rgb": np.stack([np.stack([v.rgb for v in f.views]) for f in frames]),
+        "depth": np.stack([np.stack([v.depth for v in f.views]) for f in frames]).astype(np.float32),
+        "mask": np.stack([f.masks for f in frames]).astype(np.uint8),
+        "K": np.stack([np.stack([v.K for v in f.views]) for f in frames]).astype(np.float64),
+        "cam2world": np.stack([np.stack([v.cam2world for v in f.views]) for f in frames]).astype(np.float64),
+        "state": np.stack([f.state for f in frames]).astype(np.float32),
+        "anchors": plan.anchors.astype(np.float32),
+        "t": plan.t.astype(np.int64),
+        "kind": np.array([FRAME_KINDS.index(k) for k in plan.kind], dtype=np.uint8),
+        "perturbed": np.array([f.perturbed for f in frames], dtype=bool),
+        "views": np.array([v.name for v in frames[0].views]) if frames else np.array([], dtype=str),
+    }
+    rel = frames_file(record.task, record.seed)
+    save_npz(Path(out_dir) / rel, arrays)
+    return rel
+
+
+def load_frames(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of a rendered-frames file (see the module docstring)."""
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}

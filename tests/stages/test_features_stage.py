@@ -1,0 +1,48 @@
+"""The features stage on real rendered frames: shapes, labels from masks, and the fast path's
+agreement with the whole-cloud reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import FEATURES, FIRST_TASKS
+
+from anchordp3.geometry.features import point_features
+from anchordp3.geometry.reference import reference_features
+from anchordp3.stages.features import frame_cloud, load_features
+from anchordp3.stages.render import load_frames
+
+
+@pytest.mark.parametrize("task", FIRST_TASKS)
+def test_each_frame_becomes_n_points_with_11_features_and_labels(staged, task):
+    e = staged[task]
+    f, frames = load_features(e.features), load_frames(e.frames)
+    F, N = len(frames["t"]), FEATURES.n_points
+    assert f["points"].shape == (F, N, 11) and f["points"].dtype == np.float32
+    assert f["labels"].shape == (F, N) and set(np.unique(f["labels"])) <= {0, 1}
+    assert np.isfinite(f["points"]).all()
+    np.testing.assert_allclose(np.linalg.norm(f["points"][..., 6:9], axis=-1), 1.0, atol=1e-4)
+    lo, hi = np.asarray(FEATURES.workspace_lo), np.asarray(FEATURES.workspace_hi)
+    assert (f["points"][..., :3] >= lo - 1e-6).all() and (f["points"][..., :3] <= hi + 1e-6).all()
+    assert 0.02 < f["labels"].mean() < 0.6
+    for k in ("state", "anchors", "t", "kind"):
+        np.testing.assert_array_equal(f[k], frames[k])
+
+
+def test_critical_labels_come_from_the_rendered_masks(staged):
+    frames = load_frames(staged["place_mouse"].frames)
+    cloud = frame_cloud(frames, 0, FEATURES)
+    n_mask = sum(int(((frames["depth"][0, v] > 0) & (frames["mask"][0, v] == 1)).sum()) for v in range(4))
+    assert 0 < int(cloud.labels.sum()) <= n_mask
+
+
+def test_fast_features_equal_the_whole_cloud_reference_on_a_rendered_frame(staged):
+    frames = load_frames(staged["stack_blocks_three"].frames)
+    cloud = frame_cloud(frames, 3, FEATURES)
+    view = frames["cam2world"][3, 0][:3, 3]
+    idx, fast = point_features(cloud.points, cloud.colors, FEATURES.n_points, FEATURES.k, view, seed=7)
+    ref = reference_features(cloud.points, cloud.colors, FEATURES.k, view)[idx]
+    np.testing.assert_array_equal(fast[:, :6], ref[:, :6])
+    normal_err = np.minimum(np.abs(fast[:, 6:9] - ref[:, 6:9]), np.abs(fast[:, 6:9] + ref[:, 6:9])).max()
+    assert normal_err <= 1e-4
+    assert np.abs(fast[:, 9:] - ref[:, 9:]).max() <= 1e-3

@@ -1,0 +1,95 @@
+"""The render stage: only planned frames, two mask methods that agree, DAgger frames that leave
+the episode untouched, deterministic bytes."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+from conftest import ANCHORS, FIRST_TASKS, SMALL_WORLD, stage_episode
+
+from anchordp3.schemas.stages import RenderConfig
+from anchordp3.sim.episode import build
+from anchordp3.sim.frames import FrameRequest, render_frames
+from anchordp3.sim.masks import critical_entities, segmentation_masks
+from anchordp3.stages.anchors import load_plan
+from anchordp3.stages.render import load_frames
+from anchordp3.stages.rollout import load_episode
+
+
+@pytest.mark.parametrize("task", FIRST_TASKS)
+def test_every_planned_frame_is_rendered_from_four_views(staged, task):
+    e = staged[task]
+    plan, frames = load_plan(e.plan), load_frames(e.frames)
+    F, V, H, W = len(plan), 4, SMALL_WORLD.cameras.height, SMALL_WORLD.cameras.width
+    assert frames["rgb"].shape == (F, V, H, W, 3) and frames["rgb"].dtype == np.uint8
+    assert frames["depth"].shape == frames["mask"].shape == (F, V, H, W)
+    assert frames["K"].shape == (F, V, 3, 3) and frames["cam2world"].shape == (F, V, 4, 4)
+    np.testing.assert_array_equal(frames["t"], plan.t)
+    np.testing.assert_array_equal(frames["anchors"], plan.anchors)
+    assert list(frames["views"]) == ["head", "front", "left_wrist", "right_wrist"]
+    assert 0.005 < frames["mask"].mean() < 0.5  # something, not everything, is critical
+
+
+def test_expert_frames_observe_the_recorded_states(staged):
+    e = staged["stack_blocks_three"]
+    frames = load_frames(e.frames)
+    states = load_episode(e.root / "rollout", e.record)["states"]
+    expert = frames["kind"] == 0
+    np.testing.assert_allclose(frames["state"][expert], states[frames["t"][expert]].astype(np.float32), atol=1e-6)
+
+
+def test_dagger_frames_show_a_perturbed_arm_and_leave_the_episode_unchanged(staged):
+    e = staged["stack_blocks_three"]
+    plan = load_plan(e.plan)
+    actions = load_episode(e.root / "rollout", e.record)["actions"]
+    dagger = [i for i, k in enumerate(plan.kind) if k == "dagger"]
+    assert dagger, "the plan has DAgger frames"
+    requests = [FrameRequest(int(plan.t[i]), plan.kind[i], plan.dagger_arm[i], plan.dagger_mode[i], int(plan.dagger_seed[i]),
+                             plan.anchors[i][0].astype(np.float64)) for i in range(len(plan))]
+    with_dagger, states_a = render_frames("stack_blocks_three", 0, SMALL_WORLD, actions, requests, dagger=ANCHORS.dagger)
+    expert_only = [r for r in requests if r.kind == "expert"]
+    without, states_b = render_frames("stack_blocks_three", 0, SMALL_WORLD, actions, expert_only)
+    np.testing.assert_array_equal(states_a, states_b)  # the outcome: every later state, bit for bit
+    kept = [f for f in with_dagger if not any(f is with_dagger[i] for i in dagger)]
+    for a, b in zip(kept, without):  # the remaining frames
+        np.testing.assert_array_equal(np.stack([v.rgb for v in a.views]), np.stack([v.rgb for v in b.views]))
+    for i in dagger:
+        f = with_dagger[i]
+        assert f.perturbed
+        assert np.abs(f.state - states_a[plan.t[i]]).max() > 0.01  # the arm was somewhere else
+
+
+def test_segmentation_and_depth_difference_masks_agree(tmp_path, staged):
+    e = staged["place_mouse"]
+    seg = load_frames(e.frames)
+    depth = stage_episode(tmp_path, "place_mouse", 0, render=RenderConfig(mask_method="depth_diff"))
+    dd = load_frames(depth.frames)
+    np.testing.assert_array_equal(seg["rgb"], dd["rgb"])
+    agree = (seg["mask"] == dd["mask"]).mean()
+    assert agree > 0.999, agree
+
+
+def test_masks_mark_the_critical_objects_and_the_robot_only():
+    world, task = build("place_mouse", 1, SMALL_WORLD, render=True)
+    world.settle_and_check()
+    caps = world.capture()
+    ents = critical_entities(world, task.critical_objects(), include_robot=True)
+    masks = segmentation_masks(caps, ents)
+    critical_ids = {x.per_scene_id for x in ents}
+    clutter_ids = {world.objects[n].per_scene_id for n in world.objects if n not in task.critical_objects()}
+    for c, m in zip(caps, masks):
+        seen = set(np.unique(c.segmentation[m.astype(bool)]).tolist())
+        assert seen <= critical_ids and not seen & clutter_ids
+    head = caps[0].segmentation
+    assert all((head == world.objects[n].per_scene_id).any() for n in task.critical_objects() if n in world.objects)
+    robot_only = segmentation_masks(caps, critical_entities(world, [], include_robot=True))
+    assert 0 < robot_only.sum() < masks.sum()
+
+
+def test_rendering_an_episode_twice_gives_the_same_bytes(tmp_path, staged):
+    again = stage_episode(tmp_path, "place_mouse", 0)
+    digest = lambda p: hashlib.sha256(p.read_bytes()).hexdigest()  # noqa: E731
+    assert digest(again.frames) == digest(staged["place_mouse"].frames)
+    assert digest(again.features) == digest(staged["place_mouse"].features)
