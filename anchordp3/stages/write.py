@@ -48,7 +48,11 @@ from anchordp3.schemas.dataset import (
     ShardStats,
     WriteConfig,
 )
+from anchordp3.stages.features import features_file
 from anchordp3.stages.files import atomic_write_bytes
+
+# features_file: the features stage owns the path; re-exported here for callers of this stage.
+__all__ = ["FEATURE_ARRAYS", "features_file", "finalize", "load_features", "plan_tasks", "shard_plan", "write_shard"]
 
 # name -> (shape with F = frames and N = points, dtype)
 FEATURE_ARRAYS: dict[str, tuple[tuple[int | str, ...], np.dtype]] = {
@@ -59,11 +63,6 @@ FEATURE_ARRAYS: dict[str, tuple[tuple[int | str, ...], np.dtype]] = {
     "t": (("F",), np.dtype(np.int64)),
     "kind": (("F",), np.dtype(np.uint8)),
 }
-
-
-def features_file(task: str, seed: int) -> str:
-    """Path of an episode's features relative to the features stage folder."""
-    return f"features/{task}/{seed:06d}.npz"
 
 
 def load_features(path: Path) -> dict[str, np.ndarray]:
