@@ -113,6 +113,89 @@ def demo(
     run_demo(out, parse_seeds(seeds, "--seeds"), say=typer.echo)
 
 
+@app.command()
+@cli_errors
+def status(
+    run_dir: Path = typer.Argument(..., help="Run directory."),
+) -> None:
+    """One line per data stage: done/failed/planned, complete, compute seconds, fingerprint, stale."""
+    from anchordp3.pipeline.inspect import run_status, status_table
+
+    typer.echo(status_table(run_status(run_dir)))
+
+
+@app.command()
+@cli_errors
+def inspect(
+    run_dir: Path = typer.Argument(..., help="Run directory."),
+    stage: str = typer.Argument(None, help="A data stage (rollout, anchors, render, features, write); default: all, as a table."),
+    item: str = typer.Option(None, "--item", help="One item's whole record, e.g. place_mouse/000003 or shard/00000 (in STAGE, or in every stage)."),
+    as_json: bool = typer.Option(False, "--json", help="Machine-readable: the statuses, the manifest or the record(s) as JSON."),
+    limit: int = typer.Option(50, min=0, help="Items listed at most in a stage's table (0: all)."),
+) -> None:
+    """A run's stages, a stage's manifest (counts, fingerprint, slowest items, failure reasons, items), or one item."""
+    from anchordp3.pipeline.inspect import inspect_json, inspect_text
+
+    typer.echo(inspect_json(run_dir, stage, item) if as_json else inspect_text(run_dir, stage, item, limit))
+
+
+@app.command()
+def verify(
+    run_dir: Path = typer.Argument(..., help="Run directory."),
+    repair: bool = typer.Option(False, "--repair", help="Forget the broken items, resume the run to redo exactly them, verify again."),
+    address: str = typer.Option(None, help="With --repair: Ray cluster to join (auto or ray://HOST:PORT; default: a local Ray)."),
+) -> None:
+    """Check every done item's output against its recorded checksum; exit 1 when any is missing or corrupt."""
+    raise typer.Exit(_verify(run_dir, repair, address))
+
+
+@cli_errors
+def _verify(run_dir: Path, repair: bool, address: str | None) -> int:
+    # the exit code is raised outside ``cli_errors``: typer.Exit is a RuntimeError, which it would catch
+    from anchordp3.pipeline.verify import repair_run, verify_run
+
+    if not repair:
+        report = verify_run(run_dir)
+        typer.echo(report.text())
+        return 0 if report.ok else 1
+    before, after = repair_run(run_dir, address, say=lambda m: typer.echo(m, err=True))
+    if not before.ok:
+        typer.echo(before.text() + "\n\nafter repair:")
+    typer.echo(after.text())
+    return 0 if after.ok else 1
+
+
+config_app = typer.Typer(no_args_is_help=True, help="Run configs: show resolved, validate, JSON schema.")
+app.add_typer(config_app, name="config")
+
+
+@config_app.command("show")
+@cli_errors
+def config_show(config: Path = typer.Argument(..., help="Run config (YAML).")) -> None:
+    """Print the resolved config (every default filled in) as YAML."""
+    from anchordp3.pipeline.inspect import resolved_config_yaml
+
+    typer.echo(resolved_config_yaml(config), nl=False)
+
+
+@config_app.command("validate")
+@cli_errors
+def config_validate(config: Path = typer.Argument(..., help="Run config (YAML).")) -> None:
+    """Print OK, or a one-line error naming the field (exit 2)."""
+    from anchordp3.pipeline.inspect import config_summary
+
+    typer.echo(config_summary(config))
+
+
+@config_app.command("schema")
+@cli_errors
+def config_schema(what: str = typer.Option("run", "--what", help="run: the run config; manifest: a stage manifest.")) -> None:
+    """Print the JSON schema of the run config or of a stage manifest."""
+    from anchordp3.pipeline.inspect import json_schema
+
+    typer.echo(json_schema(what))
+
+
 def main() -> None:  # pragma: no cover - console entry point
     app()
 
