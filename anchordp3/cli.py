@@ -27,7 +27,9 @@ def cli_errors(fn):
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
-        except (ValueError, ValidationError, FileNotFoundError) as e:
+        except typer.Exit:
+            raise
+        except (ValueError, ValidationError, FileNotFoundError, RuntimeError) as e:
             typer.echo(f"error: {_one_line(e)}", err=True)
             raise typer.Exit(2)
 
@@ -84,6 +86,55 @@ def snapshot(
 
     get_task(task)
     typer.echo(f"wrote {take(task, seed, world_config(preset), out)}")
+
+
+def _run_options(stages, workers, address, force, from_stage):
+    from anchordp3.pipeline.runner import RunOptions
+    from anchordp3.schemas.run import DATA_STAGES
+
+    chosen = tuple(x.strip() for x in stages.split(",")) if stages else DATA_STAGES
+    return RunOptions(stages=chosen, workers=workers, address=address, force=force, from_stage=from_stage)
+
+
+@app.command()
+@cli_errors
+def run(
+    config: Path = typer.Argument(..., help="Run config (YAML), e.g. configs/demo.yaml."),
+    run_dir: Path = typer.Option(..., "--run-dir", help="Run directory (local, or shared by every cluster node)."),
+    stages: str = typer.Option(None, help="Comma-separated data stages to run (default: all)."),
+    workers: int = typer.Option(None, min=1, help="Actors per stage pool (overrides the config)."),
+    address: str = typer.Option(None, help="Ray cluster to join: auto or ray://HOST:PORT (default: a local Ray)."),
+    force: bool = typer.Option(False, "--force", help="Redo the stages a config change invalidated."),
+    from_stage: str = typer.Option(None, "--from-stage", help="Redo this stage and everything after it."),
+) -> None:
+    """Run (or resume) the data stages: rollout → anchors → render → features → write."""
+    from anchordp3.pipeline.report import data_summary
+    from anchordp3.pipeline.runner import run_pipeline
+    from anchordp3.schemas.run import load_run_config
+
+    cfg = load_run_config(config)
+    run_pipeline(cfg, run_dir, _run_options(stages, workers, address, force, from_stage), say=lambda m: typer.echo(m, err=True))
+    typer.echo(data_summary(run_dir))
+
+
+@app.command()
+@cli_errors
+def stage(
+    name: str = typer.Argument(..., help="Data stage: rollout, anchors, render, features or write."),
+    run_dir: Path = typer.Option(..., "--run-dir", help="Run directory holding config.yaml (from an earlier `run`)."),
+    config: Path = typer.Option(None, help="Run config (default: the run directory's config.yaml)."),
+    workers: int = typer.Option(None, min=1, help="Actors in the pool (overrides the config)."),
+    address: str = typer.Option(None, help="Ray cluster to join: auto or ray://HOST:PORT."),
+    force: bool = typer.Option(False, "--force", help="Redo the stage if a config change invalidated it."),
+) -> None:
+    """Run one data stage alone; its input stage must be complete."""
+    from anchordp3.pipeline.report import data_summary
+    from anchordp3.pipeline.runner import CONFIG_FILE, run_pipeline
+    from anchordp3.schemas.run import load_run_config
+
+    cfg = load_run_config(config or run_dir / CONFIG_FILE)
+    run_pipeline(cfg, run_dir, _run_options(name, workers, address, force, None), say=lambda m: typer.echo(m, err=True))
+    typer.echo(data_summary(run_dir))
 
 
 @app.command()

@@ -1,0 +1,56 @@
+"""Ray actors that run stage items; the only module besides ``runner`` that touches Ray.
+
+An actor lives for the whole run, so per-process state (the SAPIEN renderer and its compiled
+shaders, imported libraries) is paid once per worker, not once per item.
+
+Fault injection for tests and drills: ``ANCHORDP3_INJECT_FAULTS="stage:item:n[:crash],…"`` makes
+the first ``n`` attempts of ``item`` raise (or, with ``crash``, kill the worker process).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import ray
+
+from anchordp3.pipeline.work import run_item
+from anchordp3.schemas.run import RunConfig
+
+FAULTS_ENV = "ANCHORDP3_INJECT_FAULTS"
+
+
+class InjectedFault(RuntimeError):
+    """A failure injected on purpose (``ANCHORDP3_INJECT_FAULTS``)."""
+
+
+def parse_faults(text: str) -> dict[tuple[str, str], tuple[int, bool]]:
+    """``"render:place_mouse/000001:2:crash,…"`` → {(stage, item): (attempts to fail, crash)}."""
+    out = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        bits = part.split(":")
+        if len(bits) not in (3, 4) or not bits[2].isdigit() or (len(bits) == 4 and bits[3] != "crash"):
+            raise ValueError(f"{FAULTS_ENV}: expected stage:item:n[:crash], got {part!r}")
+        out[(bits[0], bits[1])] = (int(bits[2]), len(bits) == 4)
+    return out
+
+
+@ray.remote
+class StageWorker:
+    """Runs items of one stage for one run directory."""
+
+    def __init__(self, stage: str, run_dir: str, cfg_json: str, faults: str = ""):
+        self.stage, self.run_dir = stage, Path(run_dir)
+        self.cfg = RunConfig.model_validate_json(cfg_json)
+        self.faults = parse_faults(faults)
+
+    def run(self, item_id: str, item: dict, attempt: int) -> dict:
+        n, crash = self.faults.get((self.stage, item_id), (0, False))
+        if attempt <= n:
+            if crash:
+                os._exit(1)
+            raise InjectedFault(f"injected fault in {self.stage} {item_id} (attempt {attempt})")
+        return run_item(self.stage, self.run_dir, self.cfg, item)
+
+    def ping(self) -> bool:
+        return True

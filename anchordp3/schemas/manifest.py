@@ -1,0 +1,66 @@
+"""Stage manifests: what a stage consumed, what it produced per item, and how it went."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+MANIFEST_SCHEMA_VERSION = 1
+ItemStatus = Literal["done", "failed"]
+
+
+class Fingerprint(BaseModel):
+    """What a stage's outputs depend on; a change invalidates the stage and everything downstream."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    code_version: str = Field(description="anchordp3 version that wrote the outputs.")
+    config_hash: str = Field(description="sha256 of the stage's part of the run config.")
+    upstream: dict[str, str] = Field(default_factory=dict, description="Upstream stage name → its fingerprint digest.")
+
+    def digest(self) -> str:
+        """A short hash of this fingerprint (what downstream stages record)."""
+        from anchordp3.schemas.run import config_hash
+
+        return config_hash(self.model_dump(mode="json"))[:16]
+
+
+class ItemRecord(BaseModel):
+    """One item's outcome. Written only after its output is durable."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    item: str = Field(description="Item id, e.g. 'place_mouse/000003' or 'shard/00002'.")
+    status: ItemStatus = Field(description="done: output durable; failed: gave up after retries.")
+    output: str | None = Field(default=None, description="Output path relative to the stage folder (None when there is none).")
+    checksum: str | None = Field(default=None, description="sha256 of the output's bytes.")
+    seconds: float = Field(default=0.0, ge=0, description="Compute time of the successful (or last) attempt, seconds.")
+    attempts: int = Field(default=1, ge=1, description="Tries made.")
+    reason: str | None = Field(default=None, description="Failure reason class (exception type or stage reason).")
+    detail: str = Field(default="", description="Failure message, one line.")
+    info: dict = Field(default_factory=dict, description="Small stage-specific facts (e.g. kept, frames, samples).")
+
+
+class StageCounts(BaseModel):
+    """Totals of a stage."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    planned: int = Field(default=0, ge=0, description="Items the stage will see (known so far).")
+    done: int = Field(default=0, ge=0, description="Items with a durable output.")
+    failed: int = Field(default=0, ge=0, description="Items that failed after retries.")
+    seconds: float = Field(default=0.0, ge=0, description="Sum of the items' compute seconds.")
+
+
+class StageManifest(BaseModel):
+    """A stage's manifest (``<run>/<stage>/manifest.json``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    schema_version: int = Field(default=MANIFEST_SCHEMA_VERSION, description="Version of this manifest format.")
+    stage: str = Field(description="Stage name.")
+    fingerprint: Fingerprint = Field(description="What the outputs depend on.")
+    complete: bool = Field(default=False, description="Every planned item has a record.")
+    counts: StageCounts = Field(default_factory=StageCounts, description="Totals.")
+    items: dict[str, ItemRecord] = Field(default_factory=dict, description="Item id → record, sorted by id.")
