@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-FailureReason = Literal["unstable", "ik_failure", "grasp_lost", "step_limit", "success_check_failed", "error"]
+FailureReason = Literal["unstable", "ik_failure", "grasp_lost", "step_limit", "success_check_failed", "layout_failure", "error"]
 
 
 class AnchorTag(BaseModel):

@@ -12,15 +12,15 @@ import numpy as np
 from anchordp3.schemas.sim import WorldConfig
 from anchordp3.sim.expert import AnchorTag, Expert, ExpertFailure
 from anchordp3.sim.tasks import get_task
-from anchordp3.sim.tasks.base import Task
+from anchordp3.sim.tasks.base import LayoutFailure, Task
 from anchordp3.sim.world import World
 
 
 @dataclass
 class EpisodeResult:
     """One expert rollout. states ``(T + 1, 32)``, actions ``(T, 14)`` (see ``expert.Trajectory``);
-    ``reason`` is None on success, else ``unstable``, ``ik_failure``, ``grasp_lost``,
-    ``step_limit`` or ``success_check_failed``."""
+    ``reason`` is None on success, else ``layout_failure``, ``unstable``, ``ik_failure``,
+    ``grasp_lost``, ``step_limit`` or ``success_check_failed``."""
 
     task: str
     seed: int
@@ -43,14 +43,22 @@ def build(task_name: str, seed: int, cfg: WorldConfig, render: bool) -> tuple[Wo
 
 
 def run_expert(task_name: str, seed: int, cfg: WorldConfig) -> EpisodeResult:
-    """The CPU rollout of one seed: no rendering; settle, stability check, expert, success check."""
+    """The CPU rollout of one seed: no rendering; settle, stability check, expert, success check.
+
+    A seed whose objects find no free layout (``LayoutFailure``) is a failed episode with reason
+    ``layout_failure``, not an error."""
     t0 = time.perf_counter()
-    world, task = build(task_name, seed, cfg, render=False)
+    world = World(cfg, seed, render=False)
+    task = get_task(task_name)(world)
     reason, detail = None, ""
     expert = None
-    if not world.settle_and_check():
+    try:
+        task.setup()
+    except LayoutFailure as e:
+        reason, detail = "layout_failure", str(e)
+    if reason is None and not world.settle_and_check():
         reason, detail = "unstable", "an object moved or rotated while settling"
-    else:
+    elif reason is None:
         expert = Expert(world, task.step_limit)
         try:
             task.plan(expert)
@@ -63,7 +71,7 @@ def run_expert(task_name: str, seed: int, cfg: WorldConfig) -> EpisodeResult:
     dim, jdim = world.robot.layout.dim, world.robot.layout.joint_dim
     return EpisodeResult(
         task=task_name, seed=seed, success=reason is None, reason=reason, detail=detail,
-        instruction=task.instruction(),
+        instruction=task.description if reason == "layout_failure" else task.instruction(),
         states=np.asarray(traj.states) if traj else np.zeros((0, dim)),
         actions=np.asarray(traj.actions) if traj else np.zeros((0, jdim)),
         anchors=list(traj.anchors) if traj else [],

@@ -112,10 +112,11 @@ class Expert:
     def move_pose(self, goals: dict[str, np.ndarray], name: str, linear: bool = False) -> None:
         """Move one or both arms' TCP to world poses ``goals`` (per arm ``(4, 4)``).
 
-        linear: a straight Cartesian line (IK at every control step), else a joint-space move to
-        the IK solution. Raises ``ExpertFailure("ik_failure")`` when a pose is unreachable."""
+        linear: a straight Cartesian line (IK at every control step, each seeded from the last),
+        else a joint-space move to the IK solution (seeded from the commanded joints, then, if that
+        finds none, from home). Raises ``ExpertFailure("ik_failure")`` when a pose is unreachable."""
         if not linear:
-            self.move_joints({arm: self._solve(arm, pose) for arm, pose in goals.items()}, name)
+            self.move_joints({arm: self._solve(arm, pose, retry_from_home=True) for arm, pose in goals.items()}, name)
             return
         starts = {arm: self.robot.fk(arm, self._arm_q(arm)) for arm in goals}
         dist = max(float(np.linalg.norm(goals[a][:3, 3] - starts[a][:3, 3])) for a in goals)
@@ -149,8 +150,19 @@ class Expert:
                 break
             self._step(self.target.copy())
 
-    def _solve(self, arm: str, pose: np.ndarray) -> np.ndarray:
+    def reachable(self, arm: str, *poses: np.ndarray) -> bool:
+        """Whether a joint-space move could take ``arm`` to every pose ``(4, 4)`` from the
+        commanded joints (IK seeded as ``move_pose`` seeds it); nothing moves."""
+        return all(self._ik(arm, p, retry_from_home=True) is not None for p in poses)
+
+    def _ik(self, arm: str, pose: np.ndarray, retry_from_home: bool = False) -> np.ndarray | None:
         q = self.robot.ik(arm, pose, seed_q=self._arm_q(arm))
+        if q is None and retry_from_home:
+            q = self.robot.ik(arm, pose, seed_q=np.asarray(self.robot.spec.arm(arm).home_qpos))
+        return q
+
+    def _solve(self, arm: str, pose: np.ndarray, retry_from_home: bool = False) -> np.ndarray:
+        q = self._ik(arm, pose, retry_from_home)
         if q is None:
             raise ExpertFailure("ik_failure", f"{arm} arm cannot reach {np.round(pose[:3, 3], 3).tolist()}")
         return q
@@ -180,19 +192,45 @@ class Expert:
         if float(self.world.objects[obj].pose.p[2]) < z0 + 0.5 * lift:
             raise ExpertFailure("grasp_lost", f"{obj} did not lift with the {arm} gripper")
 
-    def place(self, arm: str, place_pose: np.ndarray, obj: str, pre: float = 0.08, retreat: float = 0.08) -> None:
-        """PP → TPC → TPO → PP: carry to ``pre`` metres above ``place_pose``, lower, open, retreat.
+    def grasp_pair(self, grasp_poses: dict[str, np.ndarray], objs: dict[str, str], pre: float = 0.08, lift: float = 0.08) -> None:
+        """Both arms at once: PG → TGO → TGC → PG, each arm approaching its ``grasp_poses[arm]``
+        from ``pre`` metres back, closing on ``objs[arm]`` and lifting ``lift`` metres (anchors
+        tagged ``both``).
 
-        Raises ``ExpertFailure("grasp_lost")`` when ``obj`` fell out on the way."""
+        Raises ``ExpertFailure("grasp_lost")`` when an object did not come up with its gripper."""
+        z0 = {arm: float(self.world.objects[o].pose.p[2]) for arm, o in objs.items()}
+        opening = {arm: 1.0 for arm in grasp_poses if self.target[self.layout.gripper(arm)] < 0.99}
+        if opening:
+            self.set_gripper(opening, "TGO")
+        self.move_pose({arm: offset_along_approach(p, pre) for arm, p in grasp_poses.items()}, "PG")
+        self.move_pose(dict(grasp_poses), "TGO", linear=True)
+        self.set_gripper({arm: 0.0 for arm in grasp_poses}, "TGC")
+        lifted = {arm: p.copy() for arm, p in grasp_poses.items()}
+        for p in lifted.values():
+            p[2, 3] += lift
+        self.move_pose(lifted, "PG", linear=True)
+        for arm, o in objs.items():
+            if float(self.world.objects[o].pose.p[2]) < z0[arm] + 0.5 * lift:
+                raise ExpertFailure("grasp_lost", f"{o} did not lift with the {arm} gripper")
+
+    def place(self, arm: str, place_pose: np.ndarray, obj: str, pre: float = 0.08, retreat: float = 0.08,
+              away: np.ndarray | None = None, hold_radius: float = 0.08) -> None:
+        """PP → TPC → TPO → PP: carry to ``pre`` metres from ``place_pose``, move in, open, retreat
+        ``retreat`` metres.
+
+        away: world direction ``(3,)`` from the place pose to the pre-place and retreat poses
+        (normalised here; default straight up). hold_radius: the carried object's origin must be
+        within this many metres of the TCP at pre-place, else ``ExpertFailure("grasp_lost")``."""
+        d = np.array([0.0, 0.0, 1.0]) if away is None else np.asarray(away, dtype=np.float64) / np.linalg.norm(away)
         above = place_pose.copy()
-        above[2, 3] += pre
+        above[:3, 3] += pre * d
         self.move_pose({arm: above}, "PP")
-        if not self._holding(arm, obj):
+        if not self._holding(arm, obj, hold_radius):
             raise ExpertFailure("grasp_lost", f"{obj} dropped while carrying")
         self.move_pose({arm: place_pose}, "TPC", linear=True)
         self.set_gripper({arm: 1.0}, "TPO")
         up = place_pose.copy()
-        up[2, 3] += retreat
+        up[:3, 3] += retreat * d
         self.move_pose({arm: up}, "PP", linear=True)
 
     def _holding(self, arm: str, obj: str, radius: float = 0.08) -> bool:

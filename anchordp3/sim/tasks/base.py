@@ -12,6 +12,11 @@ from anchordp3.sim.expert import Expert
 from anchordp3.sim.world import World
 
 
+class LayoutFailure(RuntimeError):
+    """No free layout for the task's objects could be drawn for this seed (the rollout records
+    the episode as a ``layout_failure``)."""
+
+
 class Task(ABC):
     """One manipulation task on a ``World``.
 
@@ -58,7 +63,9 @@ class Task(ABC):
     # ----------------------------------------------------------------------------- helpers
     def table_xy(self, lo: tuple[float, float], hi: tuple[float, float], avoid: list[tuple[tuple[float, float], float]],
                  radius: float, tries: int = 100) -> tuple[float, float]:
-        """A uniform random table position in the box ``lo..hi`` clear of the circles in ``avoid``."""
+        """A uniform random table position in the box ``lo..hi`` clear of the circles in ``avoid``.
+
+        Raises ``LayoutFailure`` (a ``RuntimeError``) when ``tries`` draws found no free spot."""
         noise = self.world.cfg.randomization.object_pose_noise
         lo = (lo[0] - noise, lo[1] - noise)
         hi = (hi[0] + noise, hi[1] + noise)
@@ -66,7 +73,7 @@ class Task(ABC):
             xy = (float(self.rng.uniform(lo[0], hi[0])), float(self.rng.uniform(lo[1], hi[1])))
             if all(np.hypot(xy[0] - c[0], xy[1] - c[1]) > r + radius for c, r in avoid):
                 return xy
-        raise RuntimeError(f"{self.name}: no free table position after {tries} tries")
+        raise LayoutFailure(f"{self.name}: no free table position after {tries} tries")
 
     def random_yaw(self) -> float:
         """A yaw angle within the randomization's range, radians."""

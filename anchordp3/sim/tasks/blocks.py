@@ -13,21 +13,26 @@ from anchordp3.sim.actors import Part
 from anchordp3.sim.expert import Expert, top_down_pose
 from anchordp3.sim.poses import HOME_FINGER_YAW, entity_yaw, grasp_yaw, yaw_pose
 from anchordp3.sim.tasks.base import Task
+from anchordp3.sim.tasks.shapes import jittered
 
 COLORS = {"red": (0.85, 0.1, 0.1, 1.0), "green": (0.1, 0.7, 0.15, 1.0), "blue": (0.1, 0.2, 0.85, 1.0)}
+
+
 class _BlocksTask(Task):
     """Three coloured cubes on the table; subclasses choose targets and the success rule."""
 
-    block_half = 0.025
+    block_half = 0.025  # half the cube's edge, metres; each scene draws its own (``block_half_range``)
+    block_half_range = (0.021, 0.029)
 
     def _build_blocks(self, region_lo, region_hi) -> None:
+        """Three cubes of one random size per scene, each a random shade of its colour."""
         self.blocks = list(COLORS)
         avoid = list(self.keep_out)
-        h = self.block_half
+        self.block_half = h = float(self.rng.uniform(*self.block_half_range))
         for color in self.blocks:
             xy = self.table_xy(region_lo, region_hi, avoid, radius=0.05)
             avoid.append((xy, 0.05))
-            self.world.add_object(color, [Part("box", (h, h, h), rgba=COLORS[color])],
+            self.world.add_object(color, [Part("box", (h, h, h), rgba=jittered(self.rng, COLORS[color][:3], 0.08))],
                                   yaw_pose(xy[0], xy[1], self.world.table_top + h, self.random_yaw()), density=400.0)
         self.keep_out = avoid
 

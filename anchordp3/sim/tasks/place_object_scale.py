@@ -20,12 +20,12 @@ import sapien
 
 from anchordp3.sim.actors import Part, pose_matrix
 from anchordp3.sim.expert import Expert, top_down_pose
-from anchordp3.sim.tasks.base import Task
 from anchordp3.sim.poses import HOME_FINGER_YAW, entity_yaw, grasp_yaw, yaw_pose
-
-UPRIGHT = (0.7071068, 0.0, 0.7071068, 0.0)  # turns a part's x axis (a cylinder's axis) to vertical
-ACROSS = (0.7071068, 0.0, 0.0, 0.7071068)  # turns a part's x axis to the frame's y axis
-FINGER_TIP_BELOW_TCP = 0.015  # the finger tips reach this far below the tool centre point
+from anchordp3.sim.tasks.base import LayoutFailure, Task
+from anchordp3.sim.tasks.shapes import ACROSS, FINGER_TIP_BELOW_TCP
+from anchordp3.sim.tasks.shapes import jittered as _rgba
+from anchordp3.sim.tasks.shapes import pick_colour as _pick
+from anchordp3.sim.tasks.shapes import upright as _upright
 
 # Named colours (rgb) per category; the name goes into the instruction.
 MOUSE_COLOURS = {"black": (0.08, 0.08, 0.09), "white": (0.9, 0.9, 0.88), "grey": (0.5, 0.52, 0.55),
@@ -37,22 +37,6 @@ DARK = {"black": (0.06, 0.06, 0.07), "dark grey": (0.22, 0.22, 0.24), "brown": (
 WHITE, BLACK, SILVER = (0.9, 0.9, 0.9), (0.1, 0.1, 0.11), (0.7, 0.72, 0.75)
 STEEL, DARK_GLASS, LIGHT_GLASS = (0.55, 0.57, 0.6), (0.15, 0.17, 0.2), (0.82, 0.87, 0.92)
 SCALE_STYLES = [(WHITE, STEEL), (WHITE, DARK_GLASS), (BLACK, STEEL), (BLACK, LIGHT_GLASS), (SILVER, DARK_GLASS)]  # (body, pad)
-
-
-def _rgba(rng: np.random.Generator, rgb: tuple[float, float, float], jitter: float = 0.04) -> tuple[float, ...]:
-    """``rgb`` with a small random shift per channel, opaque."""
-    return (*np.clip(np.asarray(rgb) + rng.uniform(-jitter, jitter, 3), 0.0, 1.0), 1.0)
-
-
-def _pick(rng: np.random.Generator, palette: dict[str, tuple[float, float, float]]) -> tuple[str, tuple[float, ...]]:
-    """A random named colour of ``palette``: its name and a jittered rgba."""
-    name = list(palette)[int(rng.integers(len(palette)))]
-    return name, _rgba(rng, palette[name])
-
-
-def _upright(radius: float, half_height: float, x: float, y: float, z: float, rgba: tuple[float, ...]) -> Part:
-    """A vertical cylinder centred at (x, y, z), metres."""
-    return Part("cylinder", (radius, half_height), sapien.Pose([x, y, z], UPRIGHT), rgba)
 
 
 @dataclass(frozen=True)
@@ -214,7 +198,7 @@ class _PlaceOnScale(Task):
             a, b = self.rng.uniform(lo, hi, size=(2, 2))
             if np.linalg.norm(a - b) > separation:
                 return a * [side, 1.0], b * [side, 1.0]
-        raise RuntimeError(f"{self.name}: no layout with object and scale {separation:.2f} m apart")
+        raise LayoutFailure(f"{self.name}: no layout with object and scale {separation:.2f} m apart")
 
     def critical_objects(self) -> list[str]:
         return [self.noun, "scale"]
