@@ -154,14 +154,14 @@ def show(
 @app.command()
 @cli_errors
 def demo(
-    out: Path = typer.Option(Path("runs/demo"), help="Run directory."),
-    seeds: str = typer.Option("0-4", help="Seeds per task."),
+    run_dir: Path = typer.Option(Path("runs/demo"), "--run-dir", help="Run directory (re-running resumes it)."),
+    seeds: str = typer.Option(None, help="Seeds per task (default: the embedded config's)."),
+    address: str = typer.Option(None, help="Ray cluster to join (default: a local Ray)."),
 ) -> None:
-    """The whole system on a tiny default: everything that exists so far, in a few minutes."""
-    from anchordp3.pipeline.demo import run_demo
-    from anchordp3.schemas.episode import parse_seeds
+    """The whole system on the embedded tiny default (configs/demo.yaml), in minutes."""
+    from anchordp3.pipeline.demo import demo_config, run_demo
 
-    run_demo(out, parse_seeds(seeds, "--seeds"), say=typer.echo)
+    run_demo(run_dir, demo_config(seeds), say=typer.echo, address=address)
 
 
 @app.command()

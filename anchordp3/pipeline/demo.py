@@ -1,7 +1,8 @@
-"""``anchordp3 demo``: what the system can do so far, on a tiny default, in a couple of minutes.
+"""``anchordp3 demo``: the whole system on the embedded tiny default, in minutes on two CPU cores.
 
-Today: CPU rollouts of every task on a few randomized seeds (episodes saved), and a rendered
-snapshot of each task's first seed. Later stages join as they land.
+Today: the data stages through ``run`` (rollout → anchors → render → features → write) on the
+embedded ``configs/demo.yaml``, then a picture of one rendered frame. Training and evaluation
+join as they land.
 """
 
 from __future__ import annotations
@@ -9,25 +10,27 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from anchordp3.pipeline.rollouts import run_rollouts, summarize
-from anchordp3.schemas.sim import world_config
-from anchordp3.sim.tasks import TASKS
-from anchordp3.stages.snapshot import snapshot
-from anchordp3.viz.table import text_table
+from anchordp3.pipeline.report import data_summary
+from anchordp3.pipeline.runner import RunOptions, run_pipeline
+from anchordp3.pipeline.show import show_frame
+from anchordp3.schemas.run import RunConfig, load_run_config
+
+DEMO_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "demo.yaml"
 
 
-def run_demo(out_dir: Path, seeds: list[int], preset: str = "randomized", say: Callable[[str], None] = print) -> dict:
-    """Roll out every task on ``seeds`` and snapshot each; returns the per-task summaries."""
-    out_dir = Path(out_dir)
-    world = world_config(preset)
-    summaries, rows = {}, []
-    for task in TASKS:
-        records = run_rollouts(task, seeds, world, preset, out_dir / "rollout")
-        s = summarize(records)
-        summaries[task] = s
-        png = snapshot(task, seeds[0], world, out_dir / "snapshots" / f"{task}.png")
-        rows.append([task, f"{s['successes']}/{s['episodes']}", s["mean_anchors"], s["mean_steps"], s["mean_seconds"], str(png)])
-    say(text_table(["task", "kept", "anchors/ep", "steps/ep", "s/episode", "snapshot"], rows))
-    say(f"\nKept episodes (states, replayable actions, anchors) are in {out_dir / 'rollout' / 'episodes'}; "
-        f"snapshots of the four camera views in {out_dir / 'snapshots'}.")
-    return summaries
+def demo_config(seeds: str | None = None) -> RunConfig:
+    """The embedded demo config, optionally with other seeds."""
+    cfg = load_run_config(DEMO_CONFIG)
+    return cfg.model_copy(update={"seeds": seeds}) if seeds else cfg
+
+
+def run_demo(run_dir: Path, cfg: RunConfig, say: Callable[[str], None] = print, address: str | None = None) -> Path:
+    """Run the demo's data stages into ``run_dir`` (resuming if it exists), print what the dataset
+    holds, and draw its first rendered frame; returns the picture's path."""
+    run_dir = Path(run_dir)
+    run_pipeline(cfg, run_dir, RunOptions(address=address), say=say)
+    say(data_summary(run_dir))
+    png = show_frame(run_dir, run_dir / "frame.png", frame=1)
+    say(f"\nA rendered frame, its masks and its labelled cloud: {png}")
+    say(f"Inspect the run: anchordp3 status {run_dir} | anchordp3 inspect {run_dir} render | anchordp3 show {run_dir} --frame 3")
+    return png

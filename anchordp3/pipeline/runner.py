@@ -32,6 +32,7 @@ from anchordp3.schemas.episode import episode_id
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.run import DATA_STAGES, RunConfig, config_hash
 from anchordp3.stages.files import atomic_write_bytes
+from anchordp3.stages.render import prune_frames
 from anchordp3.stages.write import finalize, plan_tasks, shard_plan
 
 EPISODE_STAGES = ("rollout", "anchors", "render", "features")
@@ -52,7 +53,7 @@ class RunOptions:
     address: str | None = None          # None: a local Ray; "auto" or "ray://…": join a cluster
     force: bool = False                 # redo stages whose fingerprint changed
     from_stage: str | None = None       # redo this stage and everything downstream
-    progress_interval: float = 2.0      # seconds between progress lines
+    progress_interval: float | None = None  # seconds between progress lines (None: 2 on a terminal, 15 in a log)
     faults: str = field(default_factory=lambda: os.environ.get(FAULTS_ENV, ""))
 
 
@@ -107,6 +108,7 @@ class Runner:
         self.plan = shard_plan(self.episodes, cfg.write)
         self.tasks = plan_tasks(self.plan)
         self.stats = _Stats()
+        self.interval = opts.progress_interval if opts.progress_interval is not None else (2.0 if sys.stderr.isatty() else 15.0)
 
     # ----------------------------------------------------------------------------- setup
     def open_stores(self) -> dict[str, ManifestStore]:
@@ -228,6 +230,8 @@ class Runner:
                     queued.add(("write", str(k)))
 
         for ep in self.episodes:
+            if stores["features"].done(episode_id(*ep)):
+                self._prune(stores, episode_id(*ep))  # finishes a prune a crash interrupted
             enqueue_episode(ep)
         enqueue_ready_shards()
         if not any(queues.values()):
@@ -275,6 +279,8 @@ class Runner:
                     else:
                         stores[s].record(ItemRecord(item=item_id, status="done", output=res["output"], checksum=res["checksum"],
                                                     seconds=res["seconds"], attempts=attempt, info=res["info"]))
+                        if s == "features":
+                            self._prune(stores, item_id)
                         self.stats.done[s] += 1
                         self.stats.compute[s] += res["seconds"]
                     queued.discard((s, str(key) if s == "write" else item_id))
@@ -284,7 +290,7 @@ class Runner:
                         enqueue_episode(key)
                         enqueue_ready_shards()
                 now = time.perf_counter()
-                if now - last_print >= self.opts.progress_interval:
+                if now - last_print >= self.interval:
                     last_print = now
                     self._print_progress(stores, enabled)
         finally:
@@ -292,6 +298,16 @@ class Runner:
                 for actor in refs:
                     ray.kill(actor)
         self._print_progress(stores, enabled)
+
+    def _prune(self, stores: dict[str, ManifestStore], eid: str) -> None:
+        """With ``render.keep_frames: false``, drop a featurised episode's images and re-record
+        the render item with the slim file's checksum."""
+        rec = stores["render"].items.get(eid)
+        if self.cfg.render.keep_frames or rec is None or rec.info.get("pruned"):
+            return
+        path = stage_dir(self.run_dir, "render") / rec.output
+        prune_frames(path)
+        stores["render"].record(rec.model_copy(update={"checksum": file_sha256(path), "info": {**rec.info, "pruned": True}}))
 
     def _print_progress(self, stores: dict[str, ManifestStore], enabled: list[str]) -> None:
         lines = []

@@ -73,3 +73,15 @@ def load_frames(path: Path) -> dict[str, np.ndarray]:
     """The arrays of a rendered-frames file (see the module docstring)."""
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
+
+
+AUDIT_ARRAYS = ("rgb", "depth", "mask")  # what ``prune_frames`` drops
+
+
+def prune_frames(path: Path) -> None:
+    """Drop the images (RGB, depth, masks) of a rendered-frames file once its features are
+    durable, keeping calibration, states and labels (``render.keep_frames: false``). Idempotent."""
+    arrays = load_frames(path)
+    if not any(k in arrays for k in AUDIT_ARRAYS):
+        return
+    save_npz(path, {k: v for k, v in arrays.items() if k not in AUDIT_ARRAYS})

@@ -130,3 +130,14 @@ def test_a_second_process_on_the_same_run_directory_is_refused(tmp_path):
                              capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
     assert res.returncode == 2
     assert "in use by another process" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+
+
+def test_discarding_frames_keeps_the_dataset_and_verifies(reference, tmp_path):
+    from anchordp3.pipeline.verify import verify_run
+    from anchordp3.stages.render import load_frames
+
+    run_pipeline(tiny(render={"keep_frames": False}), tmp_path, RunOptions(progress_interval=60), say=QUIET)
+    assert dataset_content_hash(tmp_path) == reference[1]
+    frames = sorted((stage_dir(tmp_path, "render") / "frames").rglob("*.npz"))
+    assert frames and all("rgb" not in load_frames(f) and "K" in load_frames(f) for f in frames)
+    assert verify_run(tmp_path).ok
