@@ -6,7 +6,7 @@ import pickle
 
 import numpy as np
 import pytest
-from conftest import fake_features, instruction
+from dataset_helpers import fake_features, instruction
 
 from anchordp3.dataset.chunks import ArrayReader
 from anchordp3.dataset.reader import open_dataset
@@ -44,7 +44,7 @@ def test_dropped_episode_is_absent_and_tasks_filter(built):
 
 
 def test_fast_path_matches_zarr_for_other_codecs(features_dir, tmp_path):
-    from conftest import build
+    from dataset_helpers import build
 
     from anchordp3.schemas.dataset import WriteConfig
     for codec, level in (("blosc-lz4", 5), ("gzip", 1), ("none", 0)):
@@ -92,7 +92,7 @@ def test_corrupt_shard_read_names_the_file(built, tmp_path):
 
 
 def test_empty_shard_in_the_middle_is_skipped(features_dir, tmp_path):
-    from conftest import build
+    from dataset_helpers import build
 
     from anchordp3.schemas.dataset import ShardRecord, WriteConfig
     cfg = WriteConfig(episodes_per_shard=2, validation_fraction=0.0)

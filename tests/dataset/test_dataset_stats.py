@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import fake_features
+from dataset_helpers import fake_features
 
 from anchordp3.dataset.stats import dask_stats
 from anchordp3.schemas.dataset import STATS_ARRAYS, ArrayStats, ShardStats

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from conftest import EPISODES, N_POINTS, build, fake_features, instruction
+from dataset_helpers import EPISODES, N_POINTS, build, fake_features, instruction
 
 from anchordp3.dataset import shard as shard_mod
 from anchordp3.dataset.files import tree_files

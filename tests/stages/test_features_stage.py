@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import FEATURES, FIRST_TASKS
+from stage_helpers import FEATURES, FIRST_TASKS
 
 from anchordp3.geometry.features import point_features
 from anchordp3.geometry.reference import reference_features

@@ -7,7 +7,7 @@ import hashlib
 
 import numpy as np
 import pytest
-from conftest import ANCHORS, FIRST_TASKS, SMALL_WORLD, stage_episode
+from stage_helpers import ANCHORS, FIRST_TASKS, SMALL_WORLD, stage_episode
 
 from anchordp3.schemas.stages import RenderConfig
 from anchordp3.sim.episode import build
