@@ -247,6 +247,41 @@ def config_schema(what: str = typer.Option("run", "--what", help="run: the run c
     typer.echo(json_schema(what))
 
 
+train_app = typer.Typer(no_args_is_help=True, help="Train the models on a run's dataset: segmenter, classifier, policy, or all.")
+app.add_typer(train_app, name="train")
+
+
+def _train(models: list[str], run_dir: Path, config: Path | None, preset: str, steps: int | None, device: str | None,
+           force: bool) -> None:
+    from anchordp3.pipeline.training import load_training_config, train_models, training_summary
+
+    cfg = load_training_config(config, preset, steps, device)
+    results = train_models(run_dir, models, cfg, force=force, say=lambda m: typer.echo(m, err=True))
+    typer.echo(training_summary(results))
+
+
+def _train_command(models: list[str], doc: str):
+    @cli_errors
+    def command(
+        run_dir: Path = typer.Option(..., "--run-dir", help="Run directory with a complete dataset (from `anchordp3 run`)."),
+        config: Path = typer.Option(None, "--config", help="Training config YAML: any subset of the training fields, over the preset."),
+        preset: str = typer.Option("cpu", "--preset", help="Base sizes: cpu (minutes on a laptop) or report (AnchorDP3 scale, GPU)."),
+        steps: int = typer.Option(None, "--steps", min=1, help="Optimizer steps of each model (overrides epochs)."),
+        device: str = typer.Option(None, "--device", help="auto (CUDA when present), cpu or cuda (overrides the config)."),
+        force: bool = typer.Option(False, "--force", help="Retrain a model whose config, code or upstream changed."),
+    ) -> None:
+        _train(models, run_dir, config, preset, steps, device, force)
+
+    command.__doc__ = doc
+    return command
+
+
+train_app.command("segmenter")(_train_command(["segmenter"], "Train the PointNet++ segmenter (points -> critical-object probability)."))
+train_app.command("classifier")(_train_command(["classifier"], "Fine-tune the instruction classifier (text -> task)."))
+train_app.command("policy")(_train_command(["policy"], "Train the anchor diffusion policy (frame -> next anchors)."))
+train_app.command("all")(_train_command(["segmenter", "classifier", "policy"], "Train the segmenter, the classifier, then the policy."))
+
+
 def main() -> None:  # pragma: no cover - console entry point
     app()
 

@@ -1,0 +1,287 @@
+"""Training the three models of a run: ``<run>/models/<name>/`` with a manifest each.
+
+``train_models(run_dir, ["segmenter", "classifier", "policy"], config)`` reads the run's
+``config.yaml`` and its dataset (``<run>/dataset``, complete), then trains each model in that
+order through its stage function (``stages.train_*``). Each model folder holds ``model.pt``,
+``metrics.csv``, ``tensorboard/``, ``loss.png``, ``training.yaml`` (the resolved config) and a
+``StageManifest`` (``manifest.json``, stage ``train-<name>``) with one item, the model: final
+validation metrics, steps, wall time, and the checkpoint's path and sha256.
+
+Fingerprint of a model = code version + hash of what its weights depend on (seed, mixed
+precision and the model's section of ``TrainingConfig``; not the device or the loop settings) +
+upstream: the ``dataset.json`` checksum (segmenter, policy) and, for the policy, the segmenter
+checkpoint it took its 12th channel from. A model whose fingerprint changed is refused (one-line
+error) unless ``force``; one that is done with the same fingerprint is skipped; an interrupted
+one resumes from its checkpoint. The classifier learns from the instruction bank, not from the
+dataset, so a new dataset does not invalidate it. One process per run directory (``RunLock``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+from pydantic import ValidationError
+
+import anchordp3
+from anchordp3.dataset.files import file_sha256
+from anchordp3.dataset.reader import ShardedDataset, open_dataset
+from anchordp3.models.device import pick_device
+from anchordp3.pipeline.lock import RunLock
+from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_manifest
+from anchordp3.pipeline.work import stage_dir
+from anchordp3.schemas.dataset import INFO_FILE
+from anchordp3.schemas.manifest import Fingerprint, ItemRecord
+from anchordp3.schemas.run import config_hash, load_run_config
+from anchordp3.schemas.training import TrainingConfig, training_preset
+from anchordp3.stages.files import atomic_write_bytes
+from anchordp3.stages.training_loop import MODEL_FILE, TrainResult, format_metrics, format_seconds
+
+MODELS: tuple[str, ...] = ("segmenter", "classifier", "policy")
+MODELS_DIR = "models"
+CONFIG_FILE = "config.yaml"
+TRAINING_FILE = "training.yaml"
+
+Say = Callable[[str], None]
+
+
+def model_dir(run_dir: Path, name: str) -> Path:
+    """``<run>/models/<name>``."""
+    return Path(run_dir) / MODELS_DIR / name
+
+
+def stage_name(name: str) -> str:
+    """The manifest's stage name of model ``name``: ``train-<name>``."""
+    return f"train-{name}"
+
+
+# ------------------------------------------------------------------------------------------ config
+def load_training_config(path: Path | None = None, preset: str = "cpu", steps: int | None = None,
+                         device: str | None = None) -> TrainingConfig:
+    """The training config: preset ``cpu`` or ``report``, overlaid with the YAML file ``path`` (any
+    subset of ``TrainingConfig``'s fields, nested), then ``steps`` (every model's
+    ``optim.steps``) and ``device``. Errors name the file and the field."""
+    data: dict[str, Any] = training_preset(preset).model_dump(mode="json")
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such training config")
+        try:
+            overlay = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise ValueError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+        if not isinstance(overlay, dict):
+            raise ValueError(f"{path}: expected a mapping of training config fields at the top level")
+        data = _merge(data, overlay)
+    if steps is not None:
+        for name in MODELS:
+            data[name]["optim"]["steps"] = steps
+    if device is not None:
+        data["device"] = device
+    try:
+        return TrainingConfig.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        where = f"{path}: " if path is not None else ""
+        raise ValueError(f"{where}{'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+
+
+def _merge(base: dict, overlay: dict) -> dict:
+    out = dict(base)
+    for k, v in overlay.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def model_config_part(cfg: TrainingConfig, name: str) -> dict:
+    """What model ``name``'s weights depend on: seed, mixed precision, its config section."""
+    return {"seed": cfg.seed, "mixed_precision": cfg.mixed_precision, name: getattr(cfg, name).model_dump(mode="json")}
+
+
+def fingerprint(cfg: TrainingConfig, name: str, upstream: dict[str, str]) -> Fingerprint:
+    """Model ``name``'s fingerprint (see the module doc)."""
+    return Fingerprint(code_version=anchordp3.__version__, config_hash=config_hash(model_config_part(cfg, name)),
+                       upstream=dict(upstream))
+
+
+# ------------------------------------------------------------------------------------------ status
+@dataclass
+class ModelStatus:
+    """A model folder's state: ``done`` (model.pt recorded), ``partial`` (a resumable checkpoint),
+    or ``absent``; with the done record when there is one."""
+
+    name: str
+    state: str
+    record: ItemRecord | None = None
+
+
+def model_status(run_dir: Path, name: str) -> ModelStatus:
+    """Whether model ``name`` of the run is trained (reads its manifest; trains nothing)."""
+    d = model_dir(run_dir, name)
+    m = read_manifest(d) if d.is_dir() else None
+    rec = m.items.get(name) if m is not None else None
+    if rec is not None and rec.status == "done":
+        return ModelStatus(name, "done", rec)
+    if (d / "checkpoints" / "last.pt").is_file():
+        return ModelStatus(name, "partial", rec)
+    return ModelStatus(name, "absent", rec)
+
+
+def trained_model(run_dir: Path, name: str) -> tuple[Path, str] | None:
+    """``(model.pt path, sha256)`` of a trained model of the run, or None."""
+    st = model_status(run_dir, name)
+    if st.state != "done" or st.record is None or st.record.output is None:
+        return None
+    return model_dir(run_dir, name) / st.record.output, str(st.record.checksum)
+
+
+# ---------------------------------------------------------------------------------------- training
+@dataclass
+class Trained:
+    """One model's outcome in a ``train_models`` call: ``status`` is ``trained``, ``up-to-date`` or
+    ``stopped`` (``stop_at`` reached; resumable)."""
+
+    name: str
+    status: str
+    record: ItemRecord | None
+    result: TrainResult | None = None
+
+
+def train_models(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: bool = False,
+                 say: Say = print, stop_at: dict[str, int] | None = None) -> list[Trained]:
+    """Train models ``names`` (in ``MODELS`` order) of the run at ``run_dir``; see the module doc.
+
+    force: retrain a model whose fingerprint changed (its folder is emptied first); a model that is
+    up to date stays as it is.
+    stop_at: ``{name: step}``: stop that model there with a resumable checkpoint (tests, demos)."""
+    run_dir = Path(run_dir)
+    unknown = [n for n in names if n not in MODELS]
+    if unknown:
+        raise ValueError(f"model: unknown {unknown}; choose from {list(MODELS)} or all")
+    if not (run_dir / CONFIG_FILE).is_file():
+        raise FileNotFoundError(f"{run_dir}: not a run directory (no {CONFIG_FILE}); run `anchordp3 run CONFIG --run-dir {run_dir}` first")
+    run_cfg = load_run_config(run_dir / CONFIG_FILE)
+    device = pick_device(cfg.device)
+    threads = torch.get_num_threads()
+    if device.type == "cpu" and cfg.loop.cpu_threads:
+        torch.set_num_threads(cfg.loop.cpu_threads)
+    out: list[Trained] = []
+    try:
+        with RunLock(run_dir):
+            data = _open_run_dataset(run_dir) if any(n != "classifier" for n in names) else None
+            if data is not None:
+                missing = sorted(set(data.tasks) - set(run_cfg.tasks))
+                if missing:
+                    raise ValueError(f"{stage_dir(run_dir, 'write')}: dataset tasks {missing} are not in the run config's tasks")
+            for name in (n for n in MODELS if n in names):
+                out.append(_train_one(run_dir, name, cfg, data, device, force, say, (stop_at or {}).get(name)))
+    finally:
+        torch.set_num_threads(threads)
+    return out
+
+
+def _open_run_dataset(run_dir: Path) -> ShardedDataset:
+    d = stage_dir(run_dir, "write")
+    if not (d / INFO_FILE).is_file():
+        raise ValueError(f"{d}: no complete dataset (no {INFO_FILE}); finish the data stages with `anchordp3 run` first")
+    return open_dataset(d)
+
+
+def _critical_channel(run_dir: Path, cfg: TrainingConfig):
+    from anchordp3.stages.train_policy import CriticalChannel
+
+    source = cfg.policy.label_channel
+    seg = trained_model(run_dir, "segmenter") if source != "ground_truth" else None
+    if source == "segmenter" and seg is None:
+        raise ValueError("policy.label_channel: 'segmenter' needs a trained segmenter; run `anchordp3 train segmenter` first "
+                         "(or use 'auto' / 'ground_truth')")
+    if seg is None:
+        return CriticalChannel("ground_truth")
+    return CriticalChannel("segmenter", seg[0], seg[1])
+
+
+def _what_changed(old: Fingerprint, new: Fingerprint) -> str:
+    parts = []
+    if old.code_version != new.code_version:
+        parts.append(f"code version ({old.code_version} -> {new.code_version})")
+    if old.config_hash != new.config_hash:
+        parts.append("training config")
+    parts += [f"{k}" for k in sorted(set(old.upstream) | set(new.upstream)) if old.upstream.get(k) != new.upstream.get(k)]
+    return " and ".join(parts) or "fingerprint"
+
+
+def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDataset | None, device: torch.device,
+               force: bool, say: Say, stop_at: int | None) -> Trained:
+    d = model_dir(run_dir, name)
+    upstream: dict[str, str] = {}
+    channel = None
+    if name != "classifier":
+        upstream["dataset"] = file_sha256(stage_dir(run_dir, "write") / INFO_FILE)
+    if name == "policy":
+        channel = _critical_channel(run_dir, cfg)
+        upstream["segmenter"] = channel.checksum or "ground_truth"
+    fp = fingerprint(cfg, name, upstream)
+    try:
+        store = ManifestStore(d, stage_name(name), fp)
+    except StaleStageError:
+        changed = _what_changed(read_manifest(d).fingerprint, fp)
+        if not force:
+            raise ValueError(f"{d}: trained with a different {changed}; pass --force to retrain it, "
+                             "or the settings it was trained with to keep it") from None
+        say(f"{name}: {changed} changed; retraining from scratch (--force)")
+        store = ManifestStore(d, stage_name(name), fp, reset=True)
+    try:
+        if store.done(name):
+            rec = store.items[name]
+            say(f"{name}: up to date ({format_metrics(rec.info.get('metrics', {}))})")
+            return Trained(name, "up-to-date", rec)
+        store.compact(1, False)  # the fingerprint is on disk before any checkpoint is
+        atomic_write_bytes(d / TRAINING_FILE, yaml.safe_dump(model_config_part(cfg, name), sort_keys=False).encode())
+        t0 = time.perf_counter()
+        digest = fp.digest()
+        if name == "segmenter":
+            from anchordp3.stages.train_segmenter import train_segmenter
+
+            result = train_segmenter(data, cfg, d, device, digest, say, stop_at)
+        elif name == "classifier":
+            from anchordp3.stages.train_classifier import train_classifier
+
+            result = train_classifier(cfg, d, device, digest, say, stop_at)
+        else:
+            from anchordp3.stages.train_policy import train_policy
+
+            result = train_policy(data, cfg, d, device, channel, digest, say, stop_at)
+        if not result.finished:
+            return Trained(name, "stopped", None, result)
+        info = {"metrics": result.metrics, "steps": result.step, "train_seconds": round(result.seconds, 2),
+                "device": str(device), "checkpoint": str(Path(MODELS_DIR) / name / MODEL_FILE), "resumed_from": result.resumed_from}
+        if channel is not None:
+            info["critical_channel"] = channel.source
+        rec = ItemRecord(item=name, status="done", output=MODEL_FILE, checksum=result.checksum,
+                         seconds=time.perf_counter() - t0, info=info)
+        store.record(rec)
+        store.compact(1, True)
+        say(f"{name}: done in {format_seconds(result.seconds)}: {format_metrics(result.metrics)} -> {result.model_path}")
+        return Trained(name, "trained", rec, result)
+    finally:
+        store.close()
+
+
+def training_summary(results: Sequence[Trained]) -> str:
+    """A table of the models of one ``train_models`` call: status, steps, seconds, metrics, checkpoint."""
+    from anchordp3.viz.table import text_table
+
+    rows = []
+    for t in results:
+        info = t.record.info if t.record else {}
+        if t.status == "stopped" and t.result is not None:
+            rows.append([t.name, t.status, f"{t.result.step}/{t.result.total_steps}", f"{t.result.seconds:.1f}", "", ""])
+            continue
+        rows.append([t.name, t.status, info.get("steps", ""), info.get("train_seconds", ""),
+                     format_metrics(info.get("metrics", {})), t.record.output if t.record else ""])
+    return text_table(["model", "status", "steps", "train s", "validation", "checkpoint"], rows)

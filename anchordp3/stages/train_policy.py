@@ -1,0 +1,225 @@
+"""Train the anchor diffusion policy: one frame (points, state, task) -> the next H anchors.
+
+Input points get a 12th channel, the critical-object probability: the trained segmenter's
+prediction (computed once for every sample and cached in ``critical_prob-<checksum>.npy``) or the
+simulator's label. The dataset's task ids map to model task ids (``model_task_ids``), so each task
+trains its own point encoder. Normalizers (state, anchors, points) are fitted from the dataset's
+min/max statistics and travel in the checkpoint. AdamW with warm-up and cosine decay; EMA of the
+weights after every step; validation with the EMA weights on the validation split: the diffusion
+``loss`` (fixed noise, comparable across evaluations) and ``anchor_mse``, the mean squared error of
+DDIM-sampled anchors in normalized units ([-1, 1] per dimension).
+
+``train_policy(dataset, config, out_dir, device, segmenter=...)`` trains (resuming when ``out_dir``
+holds a checkpoint) and writes ``model.pt``; ``load_policy(path)`` gives back a ready module.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from anchordp3.dataset.reader import ShardedDataset
+from anchordp3.dataset.torch_data import SplitDataset
+from anchordp3.models.device import needs_grad_scaler, seed_everything
+from anchordp3.models.ema import ExponentialMovingAverage
+from anchordp3.models.encoders import append_critical_probability
+from anchordp3.models.optim import make_lr_schedule, make_optimizer
+from anchordp3.models.policy import AnchorDiffusionPolicy
+from anchordp3.schemas.training import TASK_NAMES, PolicyConfig, TrainingConfig, model_task_ids
+from anchordp3.stages.files import atomic_write_bytes
+from anchordp3.stages.train_segmenter import load_segmenter, stats_limits
+from anchordp3.stages.training_loop import (
+    Say,
+    TrainingJob,
+    TrainResult,
+    batches_per_epoch,
+    eval_batches,
+    load_checkpoint,
+    optimizer_step,
+    run_training,
+    to_device,
+    train_batches,
+)
+
+KIND = "policy"
+POLICY_KEYS = ("points", "labels", "state", "anchors")
+VAL_NOISE_SEED = 12345  # the validation loss draws its noise from this seed every time
+
+
+@dataclass(frozen=True)
+class CriticalChannel:
+    """Where the 12th point channel comes from: ``source`` is ``segmenter`` (then ``path`` is its
+    ``model.pt`` and ``checksum`` that file's sha256) or ``ground_truth`` (the simulator labels)."""
+
+    source: str
+    path: Path | None = None
+    checksum: str | None = None
+
+
+def critical_probabilities(data: ShardedDataset, segmenter_path: Path, device: torch.device, batch_size: int = 32,
+                           say: Say = print) -> np.ndarray:
+    """The segmenter's critical probability of every point of every sample: ``(samples, N) float16``
+    indexed by global sample index (both splits)."""
+    model = load_segmenter(segmenter_path, device)
+    ds = SplitDataset(data, None, keys=("points",))
+    out = np.zeros((len(data), data.info.n_points), dtype=np.float16)
+    for batch in eval_batches(ds, batch_size):
+        probs = model.probabilities(batch["points"].to(device))
+        out[batch["index"].numpy()] = probs.cpu().numpy().astype(np.float16)
+    say(f"policy: segmenter probabilities of {len(ds)} samples computed (mean {float(out.mean()):.3f})")
+    return out
+
+
+class PolicyJob(TrainingJob):
+    """The policy's training on one dataset (see ``TrainingJob``)."""
+
+    name = KIND
+
+    def __init__(self, data: ShardedDataset, config: TrainingConfig, device: torch.device,
+                 channel: CriticalChannel, probabilities: np.ndarray | None = None) -> None:
+        self.cfg, self.device, self.data, self.channel = config.policy, device, data, channel
+        self.seed, self.loop = config.seed, config.loop
+        if channel.source == "segmenter" and probabilities is None:
+            raise ValueError("policy: the segmenter channel needs the precomputed probabilities")
+        self.probabilities = None if probabilities is None else torch.from_numpy(probabilities)
+        self.task_lut = torch.tensor(model_task_ids(data.tasks), dtype=torch.long)
+        if int(self.task_lut.max()) >= self.cfg.model.num_tasks:
+            raise ValueError(f"policy.model.num_tasks: {self.cfg.model.num_tasks} encoders, but the dataset's tasks "
+                             f"{data.tasks} need ids up to {int(self.task_lut.max())}")
+        self.train_ds = SplitDataset(data, "train", keys=POLICY_KEYS)
+        self.val_ds = SplitDataset(data, "validation", keys=POLICY_KEYS)
+        optim = self.cfg.optim
+        self.steps_per_epoch = batches_per_epoch(len(self.train_ds), optim.batch_size)
+        self.total_steps = optim.total_steps(len(self.train_ds))
+        self.generator = seed_everything(self.seed)
+        self.model = AnchorDiffusionPolicy(self.cfg.model, mixed_precision=config.mixed_precision)
+        self.model.set_normalizers(self.normalizer_stats())
+        self.model.to(device).train()
+        self.ema = ExponentialMovingAverage(self.model, self.cfg.ema)
+        self.params = list(self.model.parameters())
+        self.optimizer = make_optimizer(self.params, optim)
+        self.schedule = make_lr_schedule(self.optimizer, optim, self.total_steps)
+        self.scaler = torch.amp.GradScaler("cuda") if needs_grad_scaler(device, config.mixed_precision) else None
+
+    def normalizer_stats(self) -> dict[str, dict[str, list[float]]]:
+        """Min/max of state, anchors and the 11 point channels from the dataset statistics."""
+        return {k: stats_limits(self.data.stats, k) for k in ("state", "anchors", "points")}
+
+    def observation(self, batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """A loader batch -> the policy's batch on the device: ``points (B, N, 12)`` (features +
+        critical probability), ``state (B, 32)``, ``task_id (B,)`` model ids, ``anchors (B, H, 32)``."""
+        if self.probabilities is not None:
+            prob = self.probabilities[batch["index"]].float()
+        else:
+            prob = batch["labels"].float()
+        points = append_critical_probability(batch["points"], prob)
+        out = {"points": points, "state": batch["state"], "anchors": batch["anchors"], "task_id": self.task_lut[batch["task_id"]]}
+        return to_device(out, self.device)
+
+    def batches(self, start_step: int) -> Iterator[dict[str, torch.Tensor]]:
+        return train_batches(self.train_ds, self.cfg.optim.batch_size, self.seed, start_step, self.loop.loader_workers,
+                             pin_memory=self.device.type == "cuda")
+
+    def train_step(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
+        loss = self.model.compute_loss(self.observation(batch), generator=self.generator)
+        optimizer_step(loss, self.optimizer, self.schedule, self.scaler, self.params, self.cfg.optim.grad_clip_norm)
+        decay = self.ema.step(self.model)
+        return {"loss": float(loss.detach()), "lr": self.schedule.get_last_lr()[0], "ema_decay": decay}
+
+    @torch.no_grad()
+    def evaluate(self) -> dict[str, float]:
+        """With the EMA weights over the validation split: ``loss`` (diffusion MSE, noise drawn from
+        a fixed seed) and ``anchor_mse`` (DDIM samples vs. true anchors, normalized units, over
+        the first ``val_predict_samples`` samples); ``{}`` when the split is empty."""
+        if len(self.val_ds) == 0:
+            return {}
+        model = self.ema.averaged_model
+        gen = torch.Generator().manual_seed(VAL_NOISE_SEED)
+        total, n, err, m = 0.0, 0, 0.0, 0
+        for batch in eval_batches(self.val_ds, self.cfg.optim.batch_size):
+            obs = self.observation(batch)
+            b = len(obs["state"])
+            total += float(model.compute_loss(obs, generator=gen)) * b
+            n += b
+            k = min(b, self.cfg.val_predict_samples - m)
+            if k > 0:
+                sub = {key: v[:k] for key, v in obs.items()}
+                pred = model.predict(sub, generator=gen)
+                norm = model.anchor_normalizer
+                err += float(((norm(pred) - norm(sub["anchors"])) ** 2).mean()) * k
+                m += k
+        out = {"loss": total / n}
+        if m:
+            out["anchor_mse"] = err / m
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"model": self.model.state_dict(), "ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "schedule": self.schedule.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None,
+                "generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.model.load_state_dict(state["model"])
+        self.ema.load_state_dict(state["ema"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.schedule.load_state_dict(state["schedule"])
+        if self.scaler is not None and state.get("scaler"):
+            self.scaler.load_state_dict(state["scaler"])
+        self.generator.set_state(state["generator"])
+
+    def export(self) -> dict[str, Any]:
+        cpu = lambda sd: {k: v.detach().cpu() for k, v in sd.items()}  # noqa: E731
+        return {
+            "kind": KIND,
+            "config": self.cfg.model.model_dump(mode="json"),
+            "training": self.cfg.model_dump(mode="json"),
+            "mixed_precision": self.model.mixed_precision,
+            "state_dict": cpu(self.model.state_dict()),
+            "ema_state_dict": cpu(self.ema.averaged_model.state_dict()),
+            "normalizers": self.normalizer_stats(),
+            "tasks": list(TASK_NAMES),
+            "dataset_tasks": list(self.data.tasks),
+            "critical_channel": {"source": self.channel.source, "segmenter_checksum": self.channel.checksum},
+        }
+
+
+def train_policy(data: ShardedDataset, config: TrainingConfig, out_dir: Path, device: torch.device,
+                 channel: CriticalChannel = CriticalChannel("ground_truth"), fingerprint: str = "",
+                 say: Say = print, stop_at: int | None = None) -> TrainResult:
+    """Train (or resume) the policy on ``data`` into ``out_dir`` (see ``run_training``), the 12th
+    point channel from ``channel``."""
+    out_dir = Path(out_dir)
+    probabilities = None
+    if channel.source == "segmenter":
+        if channel.path is None or channel.checksum is None:
+            raise ValueError("policy: the segmenter channel needs the segmenter's model.pt and its checksum")
+        cache = out_dir / f"critical_prob-{channel.checksum[:12]}.npy"
+        if cache.is_file():
+            probabilities = np.load(cache)
+        else:
+            probabilities = critical_probabilities(data, channel.path, device, say=say)
+            buf = io.BytesIO()
+            np.save(buf, probabilities)
+            atomic_write_bytes(cache, buf.getvalue())
+    job = PolicyJob(data, config, device, channel, probabilities)
+    say(f"policy: {len(job.train_ds)} train / {len(job.val_ds)} validation samples, tasks {data.tasks} -> encoders "
+        f"{job.task_lut.tolist()}, critical channel from {channel.source}, {job.total_steps} steps of "
+        f"{config.policy.optim.batch_size} on {device}")
+    return run_training(job, out_dir, config.loop, fingerprint, say, stop_at)
+
+
+def load_policy(path: Path, device: torch.device | str = "cpu", ema: bool = True) -> AnchorDiffusionPolicy:
+    """The trained policy of a ``model.pt`` in eval mode on ``device``: the EMA weights (what
+    evaluation uses) unless ``ema=False``; normalizers included."""
+    ckpt = load_checkpoint(path)
+    if ckpt.get("kind") != KIND:
+        raise ValueError(f"{path}: not a policy checkpoint (kind {ckpt.get('kind')!r})")
+    model = AnchorDiffusionPolicy(PolicyConfig.model_validate(ckpt["config"]), mixed_precision=bool(ckpt["mixed_precision"]))
+    model.load_state_dict(ckpt["ema_state_dict" if ema else "state_dict"])
+    return model.to(device).eval()
