@@ -243,7 +243,10 @@ class PutBottlesDustbin(Task):
     def plan(self, expert: Expert) -> None:
         top = self.world.table_top
         near = [b for b in self.bottles if np.sign(self.world.objects[b].pose.p[0]) == self.side]
-        far = [b for b in self.bottles if b not in near]
+        # far bottles nearest the handover spot first: the far arm reaching for the spot would
+        # sweep over a bottle left standing between
+        far = sorted((b for b in self.bottles if b not in near),
+                     key=lambda b: float(np.linalg.norm(self.world.objects[b].pose.p[:2] - self.handover)))
         dropped: list[str] = []
         for bottle in near:
             self._to_bin(expert, bottle, dropped)
