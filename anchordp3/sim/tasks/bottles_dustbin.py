@@ -1,13 +1,15 @@
-"""``put_bottles_dustbin`` (both arms): drop three bottles into a dustbin at one side of the table.
+"""``put_bottles_dustbin`` (both arms): put three bottles into a dustbin at one side of the table.
 
-The dustbin stands in the back half of the table towards its left or right edge (as far out as the
-head camera still sees it); only the arm on that side (the *bin arm*) reaches over its middle. Bottles on the bin's side are picked by the bin arm and dropped in
-directly. A bottle on the far side is picked by the *far arm* and handed over by
-place-in-the-middle-then-regrasp: the far arm stands it upright at a handover spot mid-table and
-goes home, then the bin arm picks it there and drops it in the bin. (A true in-air handover,
-both grippers on one bottle, would need a second grasp axis; standing the bottle on the table is
-as informative for the policy and far more reliable.) Every scene has one or two far bottles, and
-a third when the bin's side has no room left.
+The dustbin stands in the back half of the table towards its left or right edge (as far out as
+the head camera still sees it); only the arm on that side (the *bin arm*) reaches over its
+middle. Bottles on the bin's side are picked by the bin arm and put in directly. A bottle on the
+far side is picked by the *far arm* and handed over by place-in-the-middle-then-regrasp: the far
+arm stands it upright at a handover spot mid-table and goes home, then the bin arm picks it there
+and lowers it into the bin. (A true in-air handover, both grippers on one bottle, would need a
+second grasp axis; standing the bottle on the table is as informative for the policy and far more
+reliable.) Every scene has one or two far bottles, and a third when the bin's side has no room
+left. That makes 34-43 anchors per episode, more than the report's 10-30 for one grasp-place
+task: each handover is two grasp-places.
 
 The success check follows RoboTwin's (REFERENCE.md): every bottle inside the bin, here its centre
 (middle of its axis) within the bin's inner radius and above its floor, the lower end of its axis
@@ -111,7 +113,10 @@ def bin_model(rng: np.random.Generator) -> BinModel:
 
 
 class PutBottlesDustbin(Task):
-    """Drop every bottle into the dustbin, handing far bottles over through the middle of the table."""
+    """Put every bottle into the dustbin, handing far bottles over through the middle of the table.
+
+    The bin arm lowers each bottle in upright where the bin has most room, the finger tips just
+    above the rim, and lets go (a fall of a few centimetres)."""
 
     name = "put_bottles_dustbin"
     description = "Put all the bottles into the dustbin."
@@ -159,8 +164,8 @@ class PutBottlesDustbin(Task):
         return [*self.bottles, "dustbin"]
 
     def instruction(self) -> str:
-        colours = [self.models[b].colour for b in self.bottles]
-        listed = ", ".join(colours[:-1]) + " and " + colours[-1]
+        colours = list(dict.fromkeys(self.models[b].colour for b in self.bottles))  # unique, in order
+        listed = f"three {colours[0]}" if len(colours) == 1 else ", ".join(colours[:-1]) + " and " + colours[-1]
         where = "right" if self.side > 0 else "left"
         return f"Put the {listed} bottles into the {self.bin.colour} dustbin on the {where}."
 
