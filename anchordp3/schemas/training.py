@@ -256,7 +256,7 @@ class PolicyTrainingConfig(_Config):
         description="Source of the 12th point channel in training: the trained segmenter's probability ('segmenter': "
                     "required), the simulator label ('ground_truth'), or 'auto': the segmenter when the run has a trained one, else the label.",
     )
-    val_predict_samples: int = Field(default=64, ge=0, description="Validation samples denoised with DDIM (EMA weights) to measure the anchor error; 0: skip.")
+    val_predict_samples: int = Field(default=64, ge=0, description="Validation samples (evenly spread over the split) denoised with DDIM (EMA weights) to measure the anchor error; 0: skip.")
 
 
 # -------------------------------------------------------------------------------------- top level

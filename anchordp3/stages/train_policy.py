@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from anchordp3.dataset.reader import ShardedDataset
-from anchordp3.dataset.torch_data import SplitDataset
+from anchordp3.dataset.torch_data import SplitDataset, collate_samples
 from anchordp3.models.device import needs_grad_scaler, seed_everything
 from anchordp3.models.ema import ExponentialMovingAverage
 from anchordp3.models.encoders import append_critical_probability
@@ -134,30 +134,35 @@ class PolicyJob(TrainingJob):
 
     @torch.no_grad()
     def evaluate(self) -> dict[str, float]:
-        """With the EMA weights over the validation split: ``loss`` (diffusion MSE, noise drawn from
-        a fixed seed) and ``anchor_mse`` (DDIM samples vs. true anchors, normalized units, over
-        the first ``val_predict_samples`` samples); ``{}`` when the split is empty."""
+        """With the EMA weights over the validation split: ``loss`` (diffusion MSE over every sample,
+        noise drawn from a fixed seed) and ``anchor_mse`` (DDIM samples vs. true anchors, normalized
+        units, over ``val_predict_samples`` samples spread evenly over the split, so every
+        validation episode counts); ``{}`` when the split is empty."""
         if len(self.val_ds) == 0:
             return {}
         model = self.ema.averaged_model
         gen = torch.Generator().manual_seed(VAL_NOISE_SEED)
-        total, n, err, m = 0.0, 0, 0.0, 0
+        total, n = 0.0, 0
         for batch in eval_batches(self.val_ds, self.cfg.optim.batch_size):
             obs = self.observation(batch)
-            b = len(obs["state"])
-            total += float(model.compute_loss(obs, generator=gen)) * b
-            n += b
-            k = min(b, self.cfg.val_predict_samples - m)
-            if k > 0:
-                sub = {key: v[:k] for key, v in obs.items()}
-                pred = model.predict(sub, generator=gen)
-                norm = model.anchor_normalizer
-                err += float(((norm(pred) - norm(sub["anchors"])) ** 2).mean()) * k
-                m += k
+            total += float(model.compute_loss(obs, generator=gen)) * len(obs["state"])
+            n += len(obs["state"])
         out = {"loss": total / n}
-        if m:
-            out["anchor_mse"] = err / m
+        picks = self.predict_indices()
+        if len(picks):
+            err, norm, size = 0.0, model.anchor_normalizer, self.cfg.optim.batch_size
+            for i in range(0, len(picks), size):
+                obs = self.observation(collate_samples(self.val_ds.__getitems__(picks[i:i + size])))
+                pred = model.predict(obs, generator=gen)
+                err += float(((norm(pred) - norm(obs["anchors"])) ** 2).mean()) * len(pred)
+            out["anchor_mse"] = err / len(picks)
         return out
+
+    def predict_indices(self) -> list[int]:
+        """Positions in the validation split of the samples ``anchor_mse`` is measured on: up to
+        ``val_predict_samples``, evenly spaced."""
+        k = min(self.cfg.val_predict_samples, len(self.val_ds))
+        return sorted({int(round(x)) for x in np.linspace(0, len(self.val_ds) - 1, k)}) if k else []
 
     def state_dict(self) -> dict[str, Any]:
         return {"model": self.model.state_dict(), "ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict(),

@@ -295,12 +295,15 @@ def plot_losses(metrics_csv: Path, png: Path, title: str) -> Path:
 
 
 def _moving_average(ys: list[float], window: int) -> list[float]:
-    out, acc = [], 0.0
-    for i, y in enumerate(ys):
-        acc += y
-        if i >= window:
-            acc -= ys[i - window]
-        out.append(acc / min(i + 1, window))
+    """Centred moving average (no lag), the window shrinking at both ends."""
+    csum = [0.0]
+    for y in ys:
+        csum.append(csum[-1] + y)
+    half = window // 2
+    out = []
+    for i in range(len(ys)):
+        lo, hi = max(0, i - half), min(len(ys), i + half + 1)
+        out.append((csum[hi] - csum[lo]) / (hi - lo))
     return out
 
 
