@@ -282,6 +282,25 @@ train_app.command("policy")(_train_command(["policy"], "Train the anchor diffusi
 train_app.command("all")(_train_command(["segmenter", "classifier", "policy"], "Train the segmenter, the classifier, then the policy."))
 
 
+
+@app.command("eval")
+@cli_errors
+def eval_(
+    run_dir: Path = typer.Option(..., "--run-dir", help="Run directory with trained models (from `anchordp3 train all`)."),
+    episodes: int = typer.Option(10, "--episodes", min=1, help="Episodes per task (seeds disjoint from training)."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Ray actors running episodes in parallel."),
+    max_decisions: int = typer.Option(None, "--max-decisions", min=1, help="Cap on policy calls per episode (default: only the step limit)."),
+    device: str = typer.Option("cpu", "--device", help="Torch device of the actors: cpu or cuda."),
+    address: str = typer.Option(None, "--address", help="Ray cluster address (default: a local Ray)."),
+) -> None:
+    """Closed-loop evaluation: success rate per task with 95 % intervals, table, chart, report in <run>/eval."""
+    from anchordp3.pipeline.evaluation import EvalOptions, evaluation_summary, run_evaluation
+
+    opts = EvalOptions(episodes=episodes, workers=workers, max_decisions=max_decisions, device=device, address=address)
+    records = run_evaluation(run_dir, opts, say=lambda m: typer.echo(m, err=True))
+    typer.echo(evaluation_summary(records))
+    typer.echo(f"report: {run_dir / 'eval' / 'report.md'}")
+
 def main() -> None:  # pragma: no cover - console entry point
     app()
 

@@ -1,0 +1,236 @@
+"""Closed-loop evaluation of a run's trained models: episodes in parallel in Ray actors.
+
+Seeds are disjoint from every training seed (``max(training seeds) + 1000 + i``) and the
+instructions come from held-out phrasing families. Output under ``<run>/eval/``:
+``manifest.json`` (one record per episode, resumable), ``episodes/<task>/<seed>.json``,
+``episodes.parquet`` (the table), ``success.png`` (success rate per task with 95 % Wilson
+intervals) and ``report.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import ray
+
+import anchordp3
+from anchordp3.dataset.files import file_sha256
+from anchordp3.pipeline.runner import ensure_ray
+from anchordp3.pipeline.store import ManifestStore, StaleStageError
+from anchordp3.schemas.manifest import Fingerprint, ItemRecord
+from anchordp3.schemas.run import RunConfig, config_hash, load_run_config
+from anchordp3.stages.files import atomic_write_bytes
+
+EVAL_DIR = "eval"
+STAGE = "evaluate"
+SEED_OFFSET = 1000
+MODEL_NAMES = ("segmenter", "classifier", "policy")
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """episodes: per task; workers: Ray actors; max_decisions: cap on policy calls per episode
+    (None: only the step limit); device: torch device of the actors."""
+
+    episodes: int = 10
+    workers: int = 2
+    max_decisions: int | None = None
+    device: str = "cpu"
+    cpus_per_worker: float = 1.0
+    address: str | None = None
+
+
+def eval_seeds(cfg: RunConfig, episodes: int) -> list[int]:
+    """Evaluation seeds, disjoint from the run's training seeds."""
+    base = max(cfg.seed_list) + SEED_OFFSET
+    return [base + i for i in range(episodes)]
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a success rate (``(0, 1)`` when ``n == 0``)."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def episode_item(task: str, seed: int) -> str:
+    return f"{task}/{seed:06d}"
+
+
+@ray.remote
+class EvalWorker:
+    """Loads the models once, then runs episodes one at a time."""
+
+    def __init__(self, run_dir: str, cfg_json: str, device: str):
+        import torch
+
+        from anchordp3.stages.evaluate import EvalModels
+
+        torch.set_num_threads(1)
+        self.run_dir = Path(run_dir)
+        self.cfg = RunConfig.model_validate_json(cfg_json)
+        self.models = EvalModels(self.run_dir, device)
+
+    def run(self, task: str, seed: int, max_decisions: int | None) -> dict:
+        from anchordp3.stages.evaluate import evaluate_episode
+
+        return evaluate_episode(self.run_dir, task, seed, self.models, self.cfg, max_decisions).to_dict()
+
+
+def _fingerprint(run_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprint:
+    upstream = {}
+    for name in MODEL_NAMES:
+        path = Path(run_dir) / "models" / name / "model.pt"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no trained {name}; run `anchordp3 train all --run-dir {run_dir}` first")
+        upstream[name] = file_sha256(path)[:16]
+    part = {"world": cfg.world().model_dump(mode="json"), "features": cfg.features.model_dump(mode="json"),
+            "max_decisions": opts.max_decisions}
+    return Fingerprint(code_version=anchordp3.__version__, config_hash=config_hash(part), upstream=upstream)
+
+
+def run_evaluation(run_dir: Path, opts: EvalOptions = EvalOptions(), cfg: RunConfig | None = None,
+                   say: Callable[[str], None] = print) -> list[dict]:
+    """Evaluate (or finish evaluating) every task of the run on ``opts.episodes`` seeds each;
+    returns the per-episode records (dicts of ``EvalRecord``) in task, seed order."""
+    run_dir = Path(run_dir)
+    cfg = cfg or load_run_config(run_dir / "config.yaml")
+    out = run_dir / EVAL_DIR
+    fp = _fingerprint(run_dir, cfg, opts)
+    try:
+        store = ManifestStore(out, STAGE, fp)
+    except StaleStageError:
+        say("evaluate: the models or settings changed since the last evaluation; starting over")
+        store = ManifestStore(out, STAGE, fp, reset=True)
+    todo = [(t, s) for t in cfg.tasks for s in eval_seeds(cfg, opts.episodes)]
+    pending = [ep for ep in todo if not store.done(episode_item(*ep))]
+    say(f"evaluate: {len(todo)} episodes ({len(todo) - len(pending)} already done), {opts.workers} workers")
+    if pending:
+        ensure_ray(opts.address)
+        n = max(1, min(opts.workers, len(pending)))
+        workers = [EvalWorker.options(num_cpus=opts.cpus_per_worker).remote(str(run_dir), cfg.model_dump_json(), opts.device)
+                   for _ in range(n)]
+        queue = list(pending)
+        running: dict = {}
+        t0 = time.perf_counter()
+        for w in workers:
+            if queue:
+                ep = queue.pop(0)
+                running[w.run.remote(ep[0], ep[1], opts.max_decisions)] = (w, ep)
+        finished = 0
+        try:
+            while running:
+                [ref], _ = ray.wait(list(running), num_returns=1)
+                w, ep = running.pop(ref)
+                rec = ray.get(ref)
+                rel = f"episodes/{ep[0]}/{ep[1]:06d}.json"
+                atomic_write_bytes(out / rel, json.dumps(rec, indent=1).encode())
+                store.record(ItemRecord(item=episode_item(*ep), status="done", output=rel, checksum=file_sha256(out / rel),
+                                        seconds=rec["seconds"], info={"success": rec["success"], "steps": rec["steps"],
+                                                                      "decisions": rec["decisions"], "failure": rec["failure"]}))
+                finished += 1
+                say(f"evaluate: {ep[0]} seed {ep[1]}: {'success' if rec['success'] else rec['failure']} "
+                    f"({rec['steps']} steps, {rec['decisions']} decisions) [{finished}/{len(pending)}, "
+                    f"{time.perf_counter() - t0:.0f} s]")
+                if queue:
+                    nxt = queue.pop(0)
+                    running[w.run.remote(nxt[0], nxt[1], opts.max_decisions)] = (w, nxt)
+        finally:
+            for w in workers:
+                ray.kill(w)
+    store.compact(len(todo), complete=all(store.done(episode_item(*ep)) for ep in todo))
+    records = [json.loads((out / store.items[episode_item(*ep)].output).read_text()) for ep in todo]
+    write_reports(out, records, cfg, opts)
+    return records
+
+
+def summarize(records: Sequence[dict]) -> list[dict]:
+    """Per task: episodes, successes, rate, Wilson 95 % interval, mean steps and decisions, failures."""
+    rows = []
+    for task in dict.fromkeys(r["task"] for r in records):
+        rs = [r for r in records if r["task"] == task]
+        k = sum(bool(r["success"]) for r in rs)
+        lo, hi = wilson_interval(k, len(rs))
+        failures: dict[str, int] = {}
+        for r in rs:
+            if not r["success"]:
+                failures[r["failure"]] = failures.get(r["failure"], 0) + 1
+        rows.append({"task": task, "episodes": len(rs), "successes": k, "rate": k / len(rs), "ci_low": lo, "ci_high": hi,
+                     "mean_steps": sum(r["steps"] for r in rs) / len(rs),
+                     "mean_decisions": sum(r["decisions"] for r in rs) / len(rs),
+                     "classifier_correct": sum(r["predicted_task"] == r["task"] for r in rs), "failures": failures})
+    return rows
+
+
+def write_reports(out: Path, records: Sequence[dict], cfg: RunConfig, opts: EvalOptions) -> dict[str, Path]:
+    """``episodes.parquet``, ``success.png`` and ``report.md`` from the records."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    out = Path(out)
+    cols = ["task", "seed", "instruction", "predicted_task", "success", "steps", "step_limit", "decisions", "failure", "seconds"]
+    table = pa.table({c: [r[c] for r in records] for c in cols},
+                     schema=pa.schema([("task", pa.string()), ("seed", pa.int64()), ("instruction", pa.string()),
+                                       ("predicted_task", pa.string()), ("success", pa.bool_()), ("steps", pa.int64()),
+                                       ("step_limit", pa.int64()), ("decisions", pa.int64()), ("failure", pa.string()),
+                                       ("seconds", pa.float64())]))
+    tmp = out / "episodes.parquet.tmp"
+    pq.write_table(table, tmp)
+    tmp.replace(out / "episodes.parquet")
+
+    rows = summarize(records)
+    fig, ax = plt.subplots(figsize=(max(4, 1.2 * len(rows) + 2), 3.5))
+    x = list(range(len(rows)))
+    rates = [r["rate"] for r in rows]
+    err = [[r["rate"] - r["ci_low"] for r in rows], [r["ci_high"] - r["rate"] for r in rows]]
+    ax.bar(x, rates, yerr=err, capsize=4, color="#4c72b0")
+    ax.set_xticks(x, [r["task"] for r in rows], rotation=20, ha="right")
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("success rate (95 % Wilson CI)")
+    ax.set_title(f"{cfg.name}: closed-loop success")
+    fig.tight_layout()
+    tmp_png = out / "success.tmp.png"
+    fig.savefig(tmp_png, dpi=100)
+    plt.close(fig)
+    tmp_png.replace(out / "success.png")
+
+    lines = [f"# Closed-loop evaluation: {cfg.name}", "",
+             f"{len(records)} episodes on seeds disjoint from training (training seeds {cfg.seeds}; evaluation seeds "
+             f"from {max(cfg.seed_list) + SEED_OFFSET}), instructions from held-out phrasing families"
+             + (f", at most {opts.max_decisions} decisions per episode" if opts.max_decisions else "") + ".", "",
+             "| task | episodes | success | rate | 95 % CI | mean steps | mean decisions | classifier correct | failures |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        fails = ", ".join(f"{k}: {v}" for k, v in sorted(r["failures"].items())) or "-"
+        lines.append(f"| {r['task']} | {r['episodes']} | {r['successes']} | {r['rate']:.1%} | "
+                     f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}] | {r['mean_steps']:.0f} | {r['mean_decisions']:.1f} | "
+                     f"{r['classifier_correct']}/{r['episodes']} | {fails} |")
+    k = sum(bool(r["success"]) for r in records)
+    lo, hi = wilson_interval(k, len(records))
+    lines += ["", f"Overall: {k}/{len(records)} = {k / max(1, len(records)):.1%} (95 % CI [{lo:.2f}, {hi:.2f}]).", "",
+              "![success per task](success.png)", ""]
+    atomic_write_bytes(out / "report.md", "\n".join(lines).encode())
+    return {"table": out / "episodes.parquet", "chart": out / "success.png", "report": out / "report.md"}
+
+
+def evaluation_summary(records: Sequence[dict]) -> str:
+    """A plain-text success table for the terminal."""
+    from anchordp3.viz.table import text_table
+
+    rows = summarize(records)
+    return text_table(["task", "episodes", "success", "rate", "95% CI"],
+                      [[r["task"], r["episodes"], r["successes"], f"{r['rate']:.1%}", f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}]"]
+                       for r in rows])

@@ -1,0 +1,97 @@
+"""One closed-loop evaluation episode on the simulator side: build and settle the scene of a seed
+with rendering, observe it (four camera captures and the robot state), execute a predicted
+anchor by a smooth joint-space motion, and check success. No learning code here: the policy side
+lives in ``stages/evaluate.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from anchordp3.schemas.sim import WorldConfig
+from anchordp3.schemas.state import ARMS
+from anchordp3.sim.cameras import ViewCapture
+from anchordp3.sim.episode import build
+
+MIN_MOVE_STEPS = 8  # shortest anchor motion, control steps
+HOLD_STEPS = 4  # steps holding the target after each motion
+PEAK_OVER_MEAN = 1.875  # peak / mean speed of a minimum-jerk profile
+
+
+def min_jerk(n: int) -> np.ndarray:
+    """Fractions ``(n,)`` of a minimum-jerk move at steps 1..n, rising from ~0 to exactly 1."""
+    s = np.arange(1, n + 1, dtype=np.float64) / max(n, 1)
+    return s**3 * (10.0 - 15.0 * s + 6.0 * s**2)
+
+
+@dataclass
+class Observation:
+    """What the policy sees at one decision: per-view captures and the measured ``state (32,)``."""
+
+    views: list[ViewCapture]
+    state: np.ndarray
+
+
+class EvalEpisode:
+    """The scene of ``(task, seed)`` built with rendering and settled; ``stable`` says whether the
+    settled scene passed the stability check. ``steps`` counts control steps executed so far."""
+
+    def __init__(self, task: str, seed: int, cfg: WorldConfig):
+        self.task_name, self.seed = task, seed
+        self.world, self.task = build(task, seed, cfg, render=True)
+        self.stable = self.world.settle_and_check()
+        self.robot = self.world.robot
+        self.layout = self.robot.layout
+        self.dt = cfg.sim.control_dt
+        self.steps = 0
+
+    @property
+    def step_limit(self) -> int:
+        return int(self.task.step_limit)
+
+    @property
+    def steps_left(self) -> int:
+        return max(0, self.step_limit - self.steps)
+
+    def instruction(self) -> str:
+        """The task's own instruction for this scene (the evaluation uses held-out phrasings)."""
+        return self.task.instruction()
+
+    def observe(self) -> Observation:
+        """Render all views now (no segmentation: the policy uses the segmenter) and read the state."""
+        return Observation(views=self.world.capture(segmentation=False), state=self.robot.state())
+
+    def joint_goal(self, target_state: np.ndarray) -> np.ndarray:
+        """The joint-space action ``(2 * (dof + 1),)`` of a 32-d anchor state: both arms' joints and
+        grippers (clipped to [0, 1])."""
+        target_state = np.asarray(target_state, dtype=np.float64)
+        if target_state.shape != (self.layout.dim,):
+            raise ValueError(f"target_state: expected ({self.layout.dim},), got {target_state.shape}")
+        goal = np.zeros(self.layout.joint_dim)
+        for arm in ARMS:
+            goal[self.layout.qpos(arm)] = target_state[self.layout.qpos(arm)]
+            goal[self.layout.gripper(arm)] = np.clip(target_state[self.layout.gripper(arm)], 0.0, 1.0)
+        return goal
+
+    def execute(self, target_state: np.ndarray, hold_steps: int = HOLD_STEPS) -> int:
+        """Move from the commanded joint target to the anchor's joint and gripper targets along a
+        minimum-jerk profile no faster than the robot's joint speed limit, then hold a few steps.
+        Stops at the step limit; returns the control steps used."""
+        start = self.robot.joint_target()
+        end = self.joint_goal(target_state)
+        q = np.concatenate([np.arange(self.layout.qpos(a).start, self.layout.qpos(a).stop) for a in ARMS])
+        delta = float(np.abs(end[q] - start[q]).max()) if len(q) else 0.0
+        n = max(int(np.ceil(delta / self.robot.spec.max_joint_speed / self.dt * PEAK_OVER_MEAN)), MIN_MOVE_STEPS)
+        used = 0
+        for f in list(min_jerk(n)) + [1.0] * hold_steps:
+            if self.steps >= self.step_limit:
+                break
+            self.world.control_step(start + f * (end - start))
+            self.steps += 1
+            used += 1
+        return used
+
+    def success(self) -> bool:
+        return bool(self.task.check_success())
