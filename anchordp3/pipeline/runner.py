@@ -240,6 +240,7 @@ class Runner:
         pools = self._start_pools(enabled, queues)
         in_flight: dict = {}  # ObjectRef → (stage, item id, key, payload, attempt, actor index)
         load = {s: [0] * len(pools.get(s, [])) for s in DATA_STAGES}
+        order = {(s, i): deque() for s in DATA_STAGES for i in range(len(pools.get(s, [])))}  # calls per actor, oldest first
         attempts: dict[tuple[str, str], int] = {}
         last_print = 0.0
         cap = self.cfg.execution.in_flight_per_worker
@@ -257,6 +258,7 @@ class Runner:
                         attempts[(s, item_id)] = attempt
                         ref = pools[s][a].run.remote(item_id, payload, attempt)
                         in_flight[ref] = (s, item_id, key, attempt, a)
+                        order[(s, a)].append(ref)
                         load[s][a] += 1
                 if not in_flight:
                     break
@@ -264,9 +266,15 @@ class Runner:
                 for ref in ready:
                     s, item_id, key, attempt, a = in_flight.pop(ref)
                     load[s][a] -= 1
+                    running = order[(s, a)][0] is ref  # an actor runs its calls in order: the oldest was executing
+                    order[(s, a)].remove(ref)
                     try:
                         res = ray.get(ref)
                     except Exception as e:  # noqa: BLE001 - any item failure is retried, then recorded
+                        if isinstance(e, ray.exceptions.RayActorError) and not running:
+                            attempts[(s, item_id)] -= 1  # queued behind an item that killed the actor: not its fault
+                            queues[s].appendleft(key)
+                            continue
                         if attempt < self.cfg.execution.max_attempts:
                             queues[s].appendleft(key)
                             continue
