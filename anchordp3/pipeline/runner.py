@@ -107,6 +107,7 @@ class Runner:
         self.episodes = [(t, s) for t in cfg.tasks for s in cfg.seed_list]
         self.plan = shard_plan(self.episodes, cfg.write)
         self.tasks = plan_tasks(self.plan)
+        self.shard_of = {(m.task, m.seed): k for k, members in enumerate(self.plan) for m in members}
         self.stats = _Stats()
         self.interval = opts.progress_interval if opts.progress_interval is not None else (2.0 if sys.stderr.isatty() else 15.0)
 
@@ -219,10 +220,11 @@ class Runner:
                 queues[s].append(ep)
                 queued.add((s, episode_id(*ep)))
 
-        def enqueue_ready_shards():
+        def enqueue_ready_shards(candidates):
+            """Queue the shards among ``candidates`` whose every episode is resolved."""
             if "write" not in enabled:
                 return
-            for k in sorted(shards_left):
+            for k in sorted(candidates & shards_left):
                 if ("write", str(k)) in queued:
                     continue
                 if all(self.next_stage(stores, (m.task, m.seed)) is None for m in self.plan[k]):
@@ -233,7 +235,7 @@ class Runner:
             if stores["features"].done(episode_id(*ep)):
                 self._prune(stores, episode_id(*ep))  # finishes a prune a crash interrupted
             enqueue_episode(ep)
-        enqueue_ready_shards()
+        enqueue_ready_shards(set(shards_left))
         if not any(queues.values()):
             return
 
@@ -296,7 +298,7 @@ class Runner:
                         shards_left.discard(key)
                     else:
                         enqueue_episode(key)
-                        enqueue_ready_shards()
+                        enqueue_ready_shards({self.shard_of[key]})  # only the finished episode's shard can have become ready
                 now = time.perf_counter()
                 if now - last_print >= self.interval:
                     last_print = now

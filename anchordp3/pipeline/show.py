@@ -7,8 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from anchordp3.schemas.stages import FRAME_KINDS, FeaturesConfig
-from anchordp3.stages.features import frame_cloud, load_features
-from anchordp3.stages.render import load_frames
+from anchordp3.stages.features import frame_cloud
 from anchordp3.viz.frame import frame_figure
 
 MAX_PLOT_POINTS = 20_000
@@ -40,11 +39,10 @@ def show_frame(path: Path, out: Path, frame: int = 0, episode: str | None = None
     f = find_frames_file(path, episode)
     try:
         with np.load(f, allow_pickle=False) as z:
-            names = set(z.files)
+            arrays = {k: z[k] for k in z.files}
     except Exception as e:  # noqa: BLE001 - any unreadable file is bad input
         raise ValueError(f"{f}: not a frames or features file ({type(e).__name__})") from None
-    if "depth" in names:
-        arrays = load_frames(f)
+    if "depth" in arrays:
         _check_index(f, frame, len(arrays["t"]))
         cloud = frame_cloud(arrays, frame, cfg)
         rng = np.random.default_rng(0)
@@ -53,14 +51,13 @@ def show_frame(path: Path, out: Path, frame: int = 0, episode: str | None = None
         title = f"{f.parent.name}/{f.stem} frame {frame}: step {int(arrays['t'][frame])} ({kind})"
         return frame_figure(out, cloud.points[keep], cloud.colors[keep], cloud.labels[keep], list(arrays["rgb"][frame]),
                             list(arrays["mask"][frame]), [str(v) for v in arrays["views"]], title)
-    if "points" in names:
-        arrays = load_features(f)
+    if "points" in arrays:
         _check_index(f, frame, len(arrays["t"]))
         p = arrays["points"][frame]
         kind = FRAME_KINDS[int(arrays["kind"][frame])]
         title = f"{f.parent.name}/{f.stem} frame {frame}: step {int(arrays['t'][frame])} ({kind}), {len(p)} sampled points"
         return frame_figure(out, p[:, :3], p[:, 3:6], arrays["labels"][frame], title=title)
-    raise ValueError(f"{f}: not a frames or features file (arrays: {sorted(names)})")
+    raise ValueError(f"{f}: not a frames or features file (arrays: {sorted(arrays)})")
 
 
 def _check_index(f: Path, frame: int, n: int) -> None:

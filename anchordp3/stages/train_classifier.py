@@ -11,7 +11,7 @@ checkpoint) and writes ``model.pt``; ``load_classifier(path)`` gives back a read
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -98,17 +98,6 @@ class ClassifierJob(TrainingJob):
             self.model.train()
         n = max(len(self.val_texts), 1)
         return {"loss": total / n, "accuracy": correct / n}
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "schedule": self.schedule.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None}
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.schedule.load_state_dict(state["schedule"])
-        if self.scaler is not None and state.get("scaler"):
-            self.scaler.load_state_dict(state["scaler"])
 
     def export(self) -> dict[str, Any]:
         return {

@@ -165,17 +165,11 @@ class PolicyJob(TrainingJob):
         return sorted({int(round(x)) for x in np.linspace(0, len(self.val_ds) - 1, k)}) if k else []
 
     def state_dict(self) -> dict[str, Any]:
-        return {"model": self.model.state_dict(), "ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "schedule": self.schedule.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None,
-                "generator": self.generator.get_state()}
+        return {**super().state_dict(), "ema": self.ema.state_dict(), "generator": self.generator.get_state()}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        self.model.load_state_dict(state["model"])
+        super().load_state_dict(state)
         self.ema.load_state_dict(state["ema"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.schedule.load_state_dict(state["schedule"])
-        if self.scaler is not None and state.get("scaler"):
-            self.scaler.load_state_dict(state["scaler"])
         self.generator.set_state(state["generator"])
 
     def export(self) -> dict[str, Any]:

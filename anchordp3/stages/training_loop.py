@@ -184,13 +184,20 @@ class TrainingJob(ABC):
         """Metrics on the validation data (at least ``loss`` when there is any); leaves the model
         in training mode and draws nothing from the global RNG."""
 
-    @abstractmethod
     def state_dict(self) -> dict[str, Any]:
-        """Everything to resume except the global RNG: weights, optimizer, schedule, EMA, own generators."""
+        """Everything to resume except the global RNG: weights, optimizer, schedule and grad scaler
+        (``self.model``, ``self.optimizer``, ``self.schedule``, ``self.scaler``); jobs with more
+        state (EMA, own generators) extend it."""
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "schedule": self.schedule.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None}
 
-    @abstractmethod
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore what ``state_dict`` returned."""
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.schedule.load_state_dict(state["schedule"])
+        if self.scaler is not None and state.get("scaler"):
+            self.scaler.load_state_dict(state["scaler"])
 
     @abstractmethod
     def export(self) -> dict[str, Any]:
