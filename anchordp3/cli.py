@@ -157,11 +157,16 @@ def demo(
     run_dir: Path = typer.Option(Path("runs/demo"), "--run-dir", help="Run directory (re-running resumes it)."),
     seeds: str = typer.Option(None, help="Seeds per task (default: the embedded config's)."),
     address: str = typer.Option(None, help="Ray cluster to join (default: a local Ray)."),
+    episodes: int = typer.Option(1, "--episodes", min=1, help="Evaluation episodes per task."),
+    max_decisions: int = typer.Option(40, "--max-decisions", min=1, help="Cap on policy calls per evaluation episode."),
+    data_only: bool = typer.Option(False, "--data-only", help="Stop after the data stages."),
 ) -> None:
-    """The whole system on the embedded tiny default (configs/demo.yaml), in minutes."""
-    from anchordp3.pipeline.demo import demo_config, run_demo
+    """The whole system on the embedded tiny default (configs/demo.yaml): data, training,
+    closed-loop evaluation and its success table, in minutes."""
+    from anchordp3.pipeline.demo import DemoOptions, demo_config, run_demo
 
-    run_demo(run_dir, demo_config(seeds), say=typer.echo, address=address)
+    opts = DemoOptions(episodes=episodes, max_decisions=max_decisions, train=not data_only, address=address)
+    run_demo(run_dir, demo_config(seeds), say=typer.echo, opts=opts)
 
 
 @app.command()
@@ -290,16 +295,39 @@ def eval_(
     episodes: int = typer.Option(10, "--episodes", min=1, help="Episodes per task (seeds disjoint from training)."),
     workers: int = typer.Option(2, "--workers", min=1, help="Ray actors running episodes in parallel."),
     max_decisions: int = typer.Option(None, "--max-decisions", min=1, help="Cap on policy calls per episode (default: only the step limit)."),
-    device: str = typer.Option("cpu", "--device", help="Torch device of the actors: cpu or cuda."),
+    device: str = typer.Option("auto", "--device", help="Torch device of the actors: auto (CUDA when the cluster has GPUs), cpu or cuda."),
+    first_seed: int = typer.Option(None, "--first-seed", min=0, help="First evaluation seed (default: max training seed + 1000)."),
     address: str = typer.Option(None, "--address", help="Ray cluster address (default: a local Ray)."),
 ) -> None:
     """Closed-loop evaluation: success rate per task with 95 % intervals, table, chart, report in <run>/eval."""
     from anchordp3.pipeline.evaluation import EvalOptions, evaluation_summary, run_evaluation
 
-    opts = EvalOptions(episodes=episodes, workers=workers, max_decisions=max_decisions, device=device, address=address)
+    opts = EvalOptions(episodes=episodes, workers=workers, max_decisions=max_decisions, device=device, address=address,
+                       first_seed=first_seed)
     records = run_evaluation(run_dir, opts, say=lambda m: typer.echo(m, err=True))
     typer.echo(evaluation_summary(records))
     typer.echo(f"report: {run_dir / 'eval' / 'report.md'}")
+
+experiment_app = typer.Typer(no_args_is_help=True, help="Experiments that compare data recipes end to end.")
+app.add_typer(experiment_app, name="experiment")
+
+
+@experiment_app.command("anchors-vs-dense")
+@cli_errors
+def anchors_vs_dense(
+    config: Path = typer.Argument(Path("configs/experiment.yaml"), help="Experiment config (YAML): run, training, eval."),
+    out: Path = typer.Option(Path("runs/anchors-vs-dense"), "--out", help="Experiment folder (re-running resumes it)."),
+    address: str = typer.Option(None, "--address", help="Ray cluster to join (default: a local Ray)."),
+) -> None:
+    """Sparse anchors versus dense DP3-style frames at the same render budget: data, training and
+    closed-loop evaluation of both; trajectories per budget, success per task, wall time per phase."""
+    from anchordp3.pipeline.experiment import experiment_report, run_experiment
+    from anchordp3.schemas.experiment import load_experiment_config
+
+    results = run_experiment(out, load_experiment_config(config), say=lambda m: typer.echo(m, err=True), address=address)
+    typer.echo(experiment_report(results))
+    typer.echo(f"report: {out / 'report.md'}")
+
 
 def main() -> None:  # pragma: no cover - console entry point
     app()

@@ -4,7 +4,8 @@ Seeds are disjoint from every training seed (``max(training seeds) + 1000 + i``)
 instructions come from held-out phrasing families. Output under ``<run>/eval/``:
 ``manifest.json`` (one record per episode, resumable), ``episodes/<task>/<seed>.json``,
 ``episodes.parquet`` (the table), ``success.png`` (success rate per task with 95 % Wilson
-intervals) and ``report.md``.
+intervals), ``strips/<task>/<seed>.png`` (the head camera at each decision of a few episodes)
+and ``report.md``.
 """
 
 from __future__ import annotations
@@ -35,20 +36,40 @@ MODEL_NAMES = ("segmenter", "classifier", "policy")
 @dataclass(frozen=True)
 class EvalOptions:
     """episodes: per task; workers: Ray actors; max_decisions: cap on policy calls per episode
-    (None: only the step limit); device: torch device of the actors."""
+    (None: only the step limit); device: torch device of the actors (auto: CUDA when the Ray
+    cluster has GPUs, each actor holding an equal share); first_seed: the first evaluation seed
+    (None: ``max(training seeds) + 1000``; it must lie above every training seed); strips: episodes
+    per task (the first seeds) that also get a frame strip in ``strips/<task>/<seed>.png``."""
 
     episodes: int = 10
     workers: int = 2
     max_decisions: int | None = None
-    device: str = "cpu"
+    device: str = "auto"
     cpus_per_worker: float = 1.0
     address: str | None = None
+    first_seed: int | None = None
+    strips: int = 2
 
 
-def eval_seeds(cfg: RunConfig, episodes: int) -> list[int]:
+def eval_seeds(cfg: RunConfig, episodes: int, first_seed: int | None = None) -> list[int]:
     """Evaluation seeds, disjoint from the run's training seeds."""
-    base = max(cfg.seed_list) + SEED_OFFSET
+    base = max(cfg.seed_list) + SEED_OFFSET if first_seed is None else first_seed
+    if base <= max(cfg.seed_list):
+        raise ValueError(f"first_seed: {base} would overlap the training seeds {cfg.seeds}; choose one above {max(cfg.seed_list)}")
     return [base + i for i in range(episodes)]
+
+
+def actor_device(device: str, workers: int) -> tuple[str, float]:
+    """The torch device of the evaluation actors and the GPUs each reserves: ``auto`` takes CUDA
+    when the Ray cluster has GPUs (shared equally among ``workers``), else the CPU."""
+    if device not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"--device: expected auto, cpu or cuda, got {device!r}")
+    gpus = ray.cluster_resources().get("GPU", 0)
+    if device == "cuda" and gpus <= 0:
+        raise ValueError("--device: cuda asked for, but the Ray cluster has no GPU")
+    if device == "cpu" or gpus <= 0:
+        return "cpu", 0.0
+    return "cuda", min(1.0, gpus / workers)
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -80,10 +101,11 @@ class EvalWorker:
         self.cfg = RunConfig.model_validate_json(cfg_json)
         self.models = EvalModels(self.run_dir, device)
 
-    def run(self, task: str, seed: int, max_decisions: int | None) -> dict:
+    def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None) -> dict:
         from anchordp3.stages.evaluate import evaluate_episode
 
-        return evaluate_episode(self.run_dir, task, seed, self.models, self.cfg, max_decisions).to_dict()
+        path = self.run_dir / EVAL_DIR / strip if strip else None
+        return evaluate_episode(self.run_dir, task, seed, self.models, self.cfg, max_decisions, path).to_dict()
 
 
 def _fingerprint(run_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprint:
@@ -94,7 +116,7 @@ def _fingerprint(run_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprin
             raise FileNotFoundError(f"{path}: no trained {name}; run `anchordp3 train all --run-dir {run_dir}` first")
         upstream[name] = file_sha256(path)[:16]
     part = {"world": cfg.world().model_dump(mode="json"), "features": cfg.features.model_dump(mode="json"),
-            "max_decisions": opts.max_decisions}
+            "max_decisions": opts.max_decisions, "plan": cfg.anchors.plan, "dense": cfg.anchors.dense.model_dump(mode="json")}
     return Fingerprint(code_version=anchordp3.__version__, config_hash=config_hash(part), upstream=upstream)
 
 
@@ -111,21 +133,27 @@ def run_evaluation(run_dir: Path, opts: EvalOptions = EvalOptions(), cfg: RunCon
     except StaleStageError:
         say("evaluate: the models or settings changed since the last evaluation; starting over")
         store = ManifestStore(out, STAGE, fp, reset=True)
-    todo = [(t, s) for t in cfg.tasks for s in eval_seeds(cfg, opts.episodes)]
+    todo = [(t, s) for t in cfg.tasks for s in eval_seeds(cfg, opts.episodes, opts.first_seed)]
     pending = [ep for ep in todo if not store.done(episode_item(*ep))]
     say(f"evaluate: {len(todo)} episodes ({len(todo) - len(pending)} already done), {opts.workers} workers")
     if pending:
         ensure_ray(opts.address)
         n = max(1, min(opts.workers, len(pending)))
-        workers = [EvalWorker.options(num_cpus=opts.cpus_per_worker).remote(str(run_dir), cfg.model_dump_json(), opts.device)
+        device, gpus = actor_device(opts.device, n)
+        workers = [EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(str(run_dir), cfg.model_dump_json(), device)
                    for _ in range(n)]
+        strip_seeds = set(eval_seeds(cfg, min(opts.strips, opts.episodes), opts.first_seed)) if opts.strips else set()
+
+        def submit(w, ep):
+            strip = f"strips/{ep[0]}/{ep[1]:06d}.png" if ep[1] in strip_seeds else None
+            running[w.run.remote(ep[0], ep[1], opts.max_decisions, strip)] = (w, ep)
+
         queue = list(pending)
         running: dict = {}
         t0 = time.perf_counter()
         for w in workers:
             if queue:
-                ep = queue.pop(0)
-                running[w.run.remote(ep[0], ep[1], opts.max_decisions)] = (w, ep)
+                submit(w, queue.pop(0))
         finished = 0
         try:
             while running:
@@ -142,8 +170,7 @@ def run_evaluation(run_dir: Path, opts: EvalOptions = EvalOptions(), cfg: RunCon
                     f"({rec['steps']} steps, {rec['decisions']} decisions) [{finished}/{len(pending)}, "
                     f"{time.perf_counter() - t0:.0f} s]")
                 if queue:
-                    nxt = queue.pop(0)
-                    running[w.run.remote(nxt[0], nxt[1], opts.max_decisions)] = (w, nxt)
+                    submit(w, queue.pop(0))
         finally:
             for w in workers:
                 ray.kill(w)
@@ -209,7 +236,7 @@ def write_reports(out: Path, records: Sequence[dict], cfg: RunConfig, opts: Eval
 
     lines = [f"# Closed-loop evaluation: {cfg.name}", "",
              f"{len(records)} episodes on seeds disjoint from training (training seeds {cfg.seeds}; evaluation seeds "
-             f"from {max(cfg.seed_list) + SEED_OFFSET}), instructions from held-out phrasing families"
+             f"from {min(r['seed'] for r in records) if records else '-'}), instructions from held-out phrasing families"
              + (f", at most {opts.max_decisions} decisions per episode" if opts.max_decisions else "") + ".", "",
              "| task | episodes | success | rate | 95 % CI | mean steps | mean decisions | classifier correct | failures |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -222,6 +249,10 @@ def write_reports(out: Path, records: Sequence[dict], cfg: RunConfig, opts: Eval
     lo, hi = wilson_interval(k, len(records))
     lines += ["", f"Overall: {k}/{len(records)} = {k / max(1, len(records)):.1%} (95 % CI [{lo:.2f}, {hi:.2f}]).", "",
               "![success per task](success.png)", ""]
+    strips = sorted(out.glob("strips/*/*.png"))
+    if strips:
+        lines += ["Frame strips (head camera at each decision):", ""]
+        lines += [f"![{p.parent.name} {p.stem}]({p.relative_to(out).as_posix()})" for p in strips] + [""]
     atomic_write_bytes(out / "report.md", "\n".join(lines).encode())
     return {"table": out / "episodes.parquet", "chart": out / "success.png", "report": out / "report.md"}
 

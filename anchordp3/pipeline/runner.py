@@ -98,6 +98,31 @@ class _Stats:
         return f"{s:>8}: {already + self.done[s]}/{total} done, {self.failed[s]} failed, {rate:.2f}/s, ETA {eta}"
 
 
+class ActorCalls:
+    """Which call on an actor is executing, to tell the item that killed an actor from the calls
+    queued behind it (an actor runs its calls one at a time, oldest first)."""
+
+    def __init__(self):
+        self.order: dict = {}      # actor key → call refs, oldest first
+        self.lost: set = set()     # calls that were queued on an actor when it died
+
+    def submitted(self, actor, ref) -> None:
+        self.order.setdefault(actor, deque()).append(ref)
+
+    def actor_died(self, actor, ref) -> bool:
+        """``ref`` failed because its actor died: True if it was the call executing (its item is to
+        blame), False if it was only queued behind (it did not run; retry it free)."""
+        q = self.order[actor]
+        if ref in self.lost or q[0] is not ref:
+            return False
+        self.lost.update(r for r in q if r is not ref)
+        return True
+
+    def finished(self, actor, ref) -> None:
+        self.order[actor].remove(ref)
+        self.lost.discard(ref)
+
+
 class Runner:
     """One invocation of ``anchordp3 run`` on a run directory (use ``run_pipeline``)."""
 
@@ -242,7 +267,7 @@ class Runner:
         pools = self._start_pools(enabled, queues)
         in_flight: dict = {}  # ObjectRef → (stage, item id, key, payload, attempt, actor index)
         load = {s: [0] * len(pools.get(s, [])) for s in DATA_STAGES}
-        order = {(s, i): deque() for s in DATA_STAGES for i in range(len(pools.get(s, [])))}  # calls per actor, oldest first
+        calls = ActorCalls()
         attempts: dict[tuple[str, str], int] = {}
         last_print = 0.0
         cap = self.cfg.execution.in_flight_per_worker
@@ -260,7 +285,7 @@ class Runner:
                         attempts[(s, item_id)] = attempt
                         ref = pools[s][a].run.remote(item_id, payload, attempt)
                         in_flight[ref] = (s, item_id, key, attempt, a)
-                        order[(s, a)].append(ref)
+                        calls.submitted((s, a), ref)
                         load[s][a] += 1
                 if not in_flight:
                     break
@@ -268,15 +293,15 @@ class Runner:
                 for ref in ready:
                     s, item_id, key, attempt, a = in_flight.pop(ref)
                     load[s][a] -= 1
-                    running = order[(s, a)][0] is ref  # an actor runs its calls in order: the oldest was executing
-                    order[(s, a)].remove(ref)
                     try:
                         res = ray.get(ref)
                     except Exception as e:  # noqa: BLE001 - any item failure is retried, then recorded
-                        if isinstance(e, ray.exceptions.RayActorError) and not running:
-                            attempts[(s, item_id)] -= 1  # queued behind an item that killed the actor: not its fault
+                        if isinstance(e, ray.exceptions.RayActorError) and not calls.actor_died((s, a), ref):
+                            calls.finished((s, a), ref)
+                            attempts[(s, item_id)] -= 1  # queued behind the item that killed the actor: not its fault
                             queues[s].appendleft(key)
                             continue
+                        calls.finished((s, a), ref)
                         if attempt < self.cfg.execution.max_attempts:
                             queues[s].appendleft(key)
                             continue
@@ -287,6 +312,7 @@ class Runner:
                         self.stats.failed[s] += 1
                         self._check_failures(stores, s)
                     else:
+                        calls.finished((s, a), ref)
                         stores[s].record(ItemRecord(item=item_id, status="done", output=res["output"], checksum=res["checksum"],
                                                     seconds=res["seconds"], attempts=attempt, info=res["info"]))
                         if s == "features":

@@ -43,17 +43,30 @@ class DaggerConfig(BaseModel):
         return self
 
 
+class DenseConfig(BaseModel):
+    """The dense baseline's frame plan, in the style of DP3 on RoboTwin: a frame every few control
+    steps, labelled with the next H commanded actions."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    frame_stride: int = Field(default=3, ge=1, description="Control steps between frames (RoboTwin records at ~16.7 Hz: every 3rd of our 50 Hz steps).")
+    action_stride: int = Field(default=3, ge=1, description="Control steps between consecutive label actions.")
+    execute: int = Field(default=6, ge=1, description="Predicted actions executed per closed-loop decision (DP3's n_action_steps: 6 of horizon 8).")
+
+
 class AnchorsConfig(BaseModel):
     """Anchor tagging and the frame plan of every kept episode."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
+    plan: Literal["anchors", "dense"] = Field(default="anchors", description="AnchorDP3's sparse anchor frames, or the dense DP3-style baseline (`dense`).")
     source: Literal["symbolic", "kinematic"] = Field(default="symbolic", description="Anchors from the expert's operation tags, or from motion alone.")
     horizon: int = Field(default=8, ge=1, description="H: next anchors each frame is labelled with (padded with the last anchor).")
     frames_per_interval: int = Field(default=2, ge=1, description="Random frames drawn inside each interval between consecutive anchors.")
     seed: int = Field(default=0, ge=0, description="Seed of the frame draws (combined with task and episode seed).")
     dagger: DaggerConfig = Field(default_factory=DaggerConfig, description="DAgger frames.")
     kinematic: KinematicTagConfig = Field(default_factory=KinematicTagConfig, description="Kinematic tagging thresholds.")
+    dense: DenseConfig = Field(default_factory=DenseConfig, description="The dense baseline's plan (used when plan is dense).")
 
 
 class RenderConfig(BaseModel):

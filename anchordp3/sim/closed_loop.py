@@ -1,6 +1,7 @@
 """One closed-loop evaluation episode on the simulator side: build and settle the scene of a seed
 with rendering, observe it (four camera captures and the robot state), execute a predicted
-anchor by a smooth joint-space motion, and check success. No learning code here: the policy side
+anchor by a smooth joint-space motion (or, for the dense baseline, follow a chunk of predicted
+actions), and check success. No learning code here: the policy side
 lives in ``stages/evaluate.py``.
 """
 
@@ -91,6 +92,24 @@ class EvalEpisode:
             self.world.control_step(start + f * (end - start))
             self.steps += 1
             used += 1
+        return used
+
+    def follow(self, targets: np.ndarray, steps_each: int) -> int:
+        """Execute an action chunk, the dense baseline's way: ``targets (n, 32)`` commanded states
+        whose joints and grippers are reached in turn, each by linear interpolation over
+        ``steps_each`` control steps from the previous command. Stops at the step limit; returns
+        the control steps used."""
+        used = 0
+        start = self.robot.joint_target()
+        for target in np.asarray(targets, dtype=np.float64):
+            end = self.joint_goal(target)
+            for k in range(1, steps_each + 1):
+                if self.steps >= self.step_limit:
+                    return used
+                self.world.control_step(start + (k / steps_each) * (end - start))
+                self.steps += 1
+                used += 1
+            start = end
         return used
 
     def success(self) -> bool:

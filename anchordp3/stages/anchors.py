@@ -13,6 +13,11 @@ next H anchors ``a_i, a_{i+1}, …`` padded with the last. A share of them also 
 at the same step: the arm is sent to a wrong pose (near its next target, or over a wrong object),
 observed, and restored; its label is the same correct next anchors.
 
+The dense baseline (``plan: dense``, DP3 on RoboTwin) instead takes a frame every
+``dense.frame_stride`` control steps, labelled with the next H commanded actions ``actions[t],
+actions[t + s], …`` (``s = dense.action_stride``, padded with the last): each label is the 32-d
+state reached after that command, with its joints and grippers as commanded. No DAgger frames.
+
 Output per episode: ``plans/<task>/<seed:06d>.parquet``, one row per frame (see ``PLAN_COLUMNS``),
 with the anchor list in the file's metadata.
 """
@@ -79,6 +84,15 @@ def anchor_states(states: np.ndarray, actions: np.ndarray, t: np.ndarray) -> np.
     for arm in ARMS:
         g = layout.gripper(arm)
         out[:, g] = actions[np.maximum(t - 1, 0), g]
+    return out
+
+
+def commanded_states(states: np.ndarray, actions: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """Dense labels: the state ``states[s + 1]`` reached by command ``actions[s]``, with every
+    joint and gripper as commanded. steps: (L,) ints in 0..T-1. Returns (L, D) float64."""
+    layout = layout_of(states)
+    out = states[steps + 1].astype(np.float64).copy()
+    out[:, :layout.joint_dim] = actions[steps, :layout.joint_dim]
     return out
 
 
@@ -190,6 +204,27 @@ def plan_frames(task: str, seed: int, anchors: Anchors, cfg: AnchorsConfig) -> p
                 mode = "wrong_affordance" if rng.random() < cfg.dagger.wrong_affordance_prob else "near_target"
                 arm = anchors.arms[i] if anchors.arms[i] != "both" else str(rng.choice(ARMS))
                 rows.append(dict(base, kind="dagger", dagger_mode=mode, dagger_arm=arm, dagger_seed=int(rng.integers(2**31))))
+    return _plan_table(rows, anchors, cfg)
+
+
+def plan_dense_frames(task: str, seed: int, anchors: Anchors, actions: np.ndarray, states: np.ndarray,
+                      cfg: AnchorsConfig) -> pa.Table:
+    """The dense baseline's frame plan: a frame every ``dense.frame_stride`` steps of the
+    ``actions (T, J)`` episode, labelled with the next H commanded actions as 32-d states."""
+    H, T, d = cfg.horizon, len(actions), cfg.dense
+    rows: list[dict] = []
+    for t in range(0, T, d.frame_stride):
+        steps = np.minimum(t + d.action_stride * np.arange(H), T - 1)
+        label = commanded_states(states, actions, steps).astype(np.float32).reshape(-1)
+        nxt = int(np.searchsorted(anchors.t, t, side="right"))
+        rows.append(dict(task=task, seed=int(seed), t=int(t), next_anchor=min(nxt, len(anchors.t) - 1),
+                         next_names=",".join(f"step{s}" for s in steps.tolist()), anchors=label,
+                         kind="expert", dagger_mode="", dagger_arm="", dagger_seed=0))
+    return _plan_table(rows, anchors, cfg)
+
+
+def _plan_table(rows: list[dict], anchors: Anchors, cfg: AnchorsConfig) -> pa.Table:
+    H = cfg.horizon
     for k, r in enumerate(rows):
         r["frame"] = k
     D = anchors.states.shape[1]
@@ -200,7 +235,7 @@ def plan_frames(task: str, seed: int, anchors: Anchors, cfg: AnchorsConfig) -> p
     ])
     table = pa.Table.from_pylist([{k: r[k] for k in schema.names} for r in rows], schema=schema)
     meta = {"anchors": json.dumps({"t": anchors.t.tolist(), "names": anchors.names, "arms": anchors.arms,
-                                   "source": cfg.source, "horizon": H, "state_dim": D})}
+                                   "source": cfg.source, "plan": cfg.plan, "horizon": H, "state_dim": D})}
     return table.replace_schema_metadata(meta)
 
 
@@ -219,7 +254,11 @@ def table_bytes(table: pa.Table) -> bytes:
 def run_anchors(record: EpisodeRecord, rollout_dir: Path, out_dir: Path, cfg: AnchorsConfig) -> str:
     """The anchor stage for one kept episode: tag, plan, write the plan; returns its relative path."""
     arrays = load_episode(rollout_dir, record)
-    table = plan_frames(record.task, record.seed, episode_anchors(record, arrays, cfg), cfg)
+    anchors = episode_anchors(record, arrays, cfg)
+    if cfg.plan == "dense":
+        table = plan_dense_frames(record.task, record.seed, anchors, arrays["actions"], arrays["states"], cfg)
+    else:
+        table = plan_frames(record.task, record.seed, anchors, cfg)
     rel = plan_file(record.task, record.seed)
     atomic_write_bytes(Path(out_dir) / rel, table_bytes(table))
     return rel

@@ -4,7 +4,8 @@ Each decision: render the four cameras → fused, cropped, FPS-sampled 11-d poin
 segmenter's critical probability as the 12th channel → the policy (EMA weights, with the point
 encoder of the task the classifier read from a held-out-family instruction) predicts the next
 8 anchors → the first anchor's joint and gripper targets are executed by a smooth joint-space
-motion. Repeat until success, the task's step limit, or ``max_decisions``.
+motion (a run trained on the dense baseline's plan predicts the next 8 commanded actions instead,
+and its first ``dense.execute`` are followed at the plan's action spacing). Repeat until success, the task's step limit, or ``max_decisions``.
 
 Failure modes: ``None`` on success, else ``layout_failure`` / ``unstable`` (the scene could not be
 built or settled), ``no_points`` (nothing inside the workspace box), ``wrong_task`` (the
@@ -13,6 +14,7 @@ classifier picked another task and the episode failed), ``step_limit``, ``max_de
 
 from __future__ import annotations
 
+import io
 import time
 import zlib
 from dataclasses import asdict, dataclass
@@ -102,11 +104,32 @@ def decision_seed(task: str, seed: int, decision: int) -> int:
     return zlib.crc32(f"eval/{task}/{seed}/{decision}".encode())
 
 
+STRIP_FRAMES = 8  # frames in an episode's strip picture, evenly spaced over its decisions
+
+
+def write_strip(path: Path, frames: list[tuple[np.ndarray, str]], title: str) -> Path:
+    """An episode's frame strip: up to ``STRIP_FRAMES`` of its ``(rgb (H, W, 3) uint8, label)``
+    frames, evenly spaced and always with the last, side by side; written atomically as PNG."""
+    from anchordp3.stages.files import atomic_write_bytes
+    from anchordp3.viz.mosaic import mosaic
+
+    if len(frames) > STRIP_FRAMES:
+        idx = np.unique(np.linspace(0, len(frames) - 1, STRIP_FRAMES).round().astype(int))
+        frames = [frames[i] for i in idx]
+    img = mosaic([f for f, _ in frames], [label for _, label in frames], cols=len(frames), title=title)
+    buf = io.BytesIO()
+    img.save(buf, format="PNG")
+    atomic_write_bytes(Path(path), buf.getvalue())
+    return Path(path)
+
+
 def evaluate_episode(run_dir: Path, task: str, seed: int, models: EvalModels, cfg: RunConfig,
-                     max_decisions: int | None = None) -> EvalRecord:
-    """Run one closed-loop episode of ``task`` on ``seed`` with ``models``; see the module docstring."""
+                     max_decisions: int | None = None, strip: Path | None = None) -> EvalRecord:
+    """Run one closed-loop episode of ``task`` on ``seed`` with ``models``; see the module docstring.
+    strip: when given, the head camera's view at each decision and at the end is drawn there."""
     del run_dir  # the models are already loaded; kept for the stage's uniform signature
     t0 = time.perf_counter()
+    frames: list[tuple[np.ndarray, str]] = []
     text = episode_instruction(task, seed, split="val").text
     predicted = models.classify(text)
     pred_name = TASK_NAMES[predicted] if 0 <= predicted < len(TASK_NAMES) else str(predicted)
@@ -114,6 +137,9 @@ def evaluate_episode(run_dir: Path, task: str, seed: int, models: EvalModels, cf
     def record(success: bool, steps: int, limit: int, decisions: int, failure: str | None) -> EvalRecord:
         if not success and failure in ("step_limit", "max_decisions") and predicted != task_id(task):
             failure = "wrong_task"
+        if strip is not None and frames:
+            frames.append((ep.observe().views[0].rgb, f"end t{ep.steps}"))
+            write_strip(strip, frames, f"{task} seed {seed}: {'success' if success else failure} - {text}")
         return EvalRecord(task=task, seed=seed, instruction=text, predicted_task=pred_name, success=success,
                           steps=steps, step_limit=limit, decisions=decisions, failure=None if success else failure,
                           seconds=time.perf_counter() - t0)
@@ -133,11 +159,16 @@ def evaluate_episode(run_dir: Path, task: str, seed: int, models: EvalModels, cf
         if max_decisions is not None and decisions >= max_decisions:
             return record(False, ep.steps, ep.step_limit, decisions, "max_decisions")
         obs = ep.observe()
+        if strip is not None:
+            frames.append((obs.views[0].rgb, f"d{decisions} t{ep.steps}"))
         s = decision_seed(task, seed, decisions)
         try:
             points, _ = frame_features(frames_dict(obs), 0, cfg.features, s)
         except ValueError:
             return record(False, ep.steps, ep.step_limit, decisions, "no_points")
-        anchors = models.anchors(points, obs.state, predicted, s)
-        ep.execute(anchors[0])
+        pred = models.anchors(points, obs.state, predicted, s)
+        if cfg.anchors.plan == "dense":  # the dense baseline predicts actions: follow a chunk of them
+            ep.follow(pred[:cfg.anchors.dense.execute], cfg.anchors.dense.action_stride)
+        else:
+            ep.execute(pred[0])
         decisions += 1

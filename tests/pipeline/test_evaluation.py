@@ -22,28 +22,10 @@ from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.training import MODELS, train_models
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.training import TrainingConfig
+from tiny_models import tiny_data, tiny_training
 
-DATA = {
-    "name": "tiny-eval", "tasks": ["place_mouse"], "seeds": "0-1", "preset": "randomized",
-    "cameras": {"width": 64, "height": 48}, "features": {"n_points": 256},
-    "anchors": {"dagger": {"fraction": 0.2}}, "write": {"episodes_per_shard": 2, "validation_fraction": 0.25},
-    "execution": {"pools": {s: {"workers": 1, "cpus": 0.4} for s in ("rollout", "anchors", "render", "features", "write")}},
-}
-TRAIN = {
-    "segmenter": {
-        "model": {"set_abstraction": [{"npoint": 64, "radius": 0.05, "nsample": 8, "mlp": [16, 32]},
-                                      {"npoint": 16, "radius": 0.15, "nsample": 8, "mlp": [32, 64]}],
-                  "feature_propagation": [[32], [32]], "head_hidden": 32},
-        "optim": {"steps": 3, "warmup_steps": 1, "batch_size": 8},
-    },
-    "classifier": {"instructions": {"count": 240}, "optim": {"steps": 3, "batch_size": 16, "warmup_steps": 1}},
-    "policy": {
-        "model": {"unet": {"down_dims": [32, 64], "step_embed_dim": 32}, "point_encoder": {"hidden_dim": 32, "out_dim": 64}},
-        "optim": {"steps": 3, "warmup_steps": 1, "lr": 1e-3, "batch_size": 16}, "val_predict_samples": 2,
-    },
-    "loop": {"log_interval_s": 5.0},
-    "device": "cpu",
-}
+DATA = tiny_data("tiny-eval", ["place_mouse"], "0-1")
+TRAIN = tiny_training(3, 3, 3, loop={"log_interval_s": 5.0}, device="cpu")
 QUIET = lambda m: None
 
 
@@ -94,6 +76,10 @@ def test_evaluation_writes_records_and_reports(trained_run):
     assert (out / "success.png").read_bytes()[:4] == b"\x89PNG"
     report = (out / "report.md").read_text()
     assert "place_mouse" in report and "95 %" in report
+    for r in records:  # the first two seeds of each task get a frame strip, linked from the report
+        if r["failure"] not in ("layout_failure", "unstable"):
+            strip = out / "strips" / "place_mouse" / f"{r['seed']:06d}.png"
+            assert strip.read_bytes()[:4] == b"\x89PNG" and f"strips/place_mouse/{r['seed']:06d}.png" in report
     # a second call finds every episode done and redoes none
     again: list[str] = []
     assert run_evaluation(trained_run, opts, say=again.append) == records

@@ -29,27 +29,10 @@ from anchordp3.stages.train_classifier import load_classifier
 from anchordp3.stages.train_policy import CriticalChannel, PolicyJob, load_policy, train_policy
 from anchordp3.stages.train_segmenter import SegmenterJob, load_segmenter
 from anchordp3.stages.training_loop import load_checkpoint, read_metrics, run_training
+from tiny_models import tiny_data, tiny_training
 
-DATA = {
-    "name": "tiny-train", "tasks": ["place_mouse", "place_bell"], "seeds": "0-1", "preset": "randomized",
-    "cameras": {"width": 64, "height": 48}, "features": {"n_points": 256},
-    "anchors": {"dagger": {"fraction": 0.2}}, "write": {"episodes_per_shard": 2, "validation_fraction": 0.25},
-    "execution": {"pools": {s: {"workers": 1, "cpus": 0.4} for s in ("rollout", "anchors", "render", "features", "write")}},
-}
-TRAIN = {  # tiny networks, a few dozen steps each
-    "segmenter": {
-        "model": {"set_abstraction": [{"npoint": 64, "radius": 0.05, "nsample": 8, "mlp": [16, 32]},
-                                      {"npoint": 16, "radius": 0.15, "nsample": 8, "mlp": [32, 64]}],
-                  "feature_propagation": [[32], [32]], "head_hidden": 32},
-        "optim": {"steps": 40, "warmup_steps": 5, "batch_size": 8},
-    },
-    "classifier": {"instructions": {"count": 240}, "optim": {"steps": 12, "batch_size": 16, "warmup_steps": 3}},
-    "policy": {
-        "model": {"unet": {"down_dims": [32, 64], "step_embed_dim": 32}, "point_encoder": {"hidden_dim": 32, "out_dim": 64}},
-        "optim": {"steps": 40, "warmup_steps": 5, "lr": 1e-3, "batch_size": 16}, "val_predict_samples": 8,
-    },
-    "loop": {"log_interval_s": 0.5},
-}
+DATA = tiny_data("tiny-train", ["place_mouse", "place_bell"], "0-1")
+TRAIN = tiny_training(40, 12, 40, val_predict_samples=8, loop={"log_interval_s": 0.5})  # tiny networks, a few dozen steps each
 QUIET = lambda m: None  # noqa: E731
 
 

@@ -112,3 +112,24 @@ def test_plan_file_is_a_readable_parquet_table(staged):
     plan = load_plan(e.plan)
     assert plan.anchors.shape == (len(plan), 8, 32)
     assert list(plan.anchor_names) and plan.anchor_t[-1] == e.record.steps
+
+
+def test_dense_plan_takes_a_frame_every_stride_steps_labelled_with_the_next_commanded_actions(staged):
+    from anchordp3.stages.anchors import plan_dense_frames
+
+    e, arr = _episode(staged, "place_mouse")
+    cfg = AnchorsConfig(plan="dense", dense={"frame_stride": 3, "action_stride": 2})
+    anchors = episode_anchors(e.record, arr, cfg)
+    actions, states = arr["actions"], arr["states"]
+    T = len(actions)
+    table = plan_dense_frames(e.record.task, e.record.seed, anchors, actions, states, cfg)
+    path = e.root / "dense.parquet"
+    path.write_bytes(table_bytes(table))
+    plan = load_plan(path)
+    assert plan.t.tolist() == list(range(0, T, 3)) and set(plan.kind) == {"expert"}
+    J = L.joint_dim
+    for i in (0, len(plan) // 2, len(plan) - 1):
+        t = int(plan.t[i])
+        steps = np.minimum(t + 2 * np.arange(8), T - 1)
+        np.testing.assert_allclose(plan.anchors[i][:, :J], actions[steps, :J], atol=1e-6)  # joints and grippers as commanded
+        np.testing.assert_allclose(plan.anchors[i][:, J:], states[steps + 1, J:], atol=1e-6)  # end effectors as reached

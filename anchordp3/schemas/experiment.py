@@ -1,0 +1,57 @@
+"""Configuration of ``anchordp3 experiment anchors-vs-dense``: the data, training and evaluation
+settings shared by the two arms of the comparison."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field
+
+from anchordp3.schemas.run import RunConfig
+from anchordp3.schemas.training import TrainingConfig
+
+
+class ExperimentEvalConfig(BaseModel):
+    """Closed-loop evaluation of both arms, on the same seeds and instructions."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    episodes: int = Field(default=3, ge=1, description="Evaluation episodes per task and arm.")
+    workers: int = Field(default=2, ge=1, description="Ray actors running episodes in parallel.")
+    max_decisions: int | None = Field(default=None, ge=1, description="Cap on policy calls per episode (None: only the task's step limit).")
+
+
+class ExperimentConfig(BaseModel):
+    """The anchors arm is ``run`` as written (its ``anchors.plan`` must be ``anchors``); the dense
+    arm is the same run with ``anchors.plan: dense`` on as many of its seeds as fit in the anchors
+    arm's render budget."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    run: RunConfig = Field(description="The anchors arm's data run (tasks, seeds, world, stages, execution).")
+    training: TrainingConfig = Field(default_factory=TrainingConfig, description="Training of the three models, the same for both arms.")
+    eval: ExperimentEvalConfig = Field(default_factory=ExperimentEvalConfig, description="Closed-loop evaluation of both arms.")
+
+
+def load_experiment_config(path: Path) -> ExperimentConfig:
+    """Read and validate a YAML experiment config. Errors name the file and the field path."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such experiment config")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ValueError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping with run, training and eval at the top level")
+    from pydantic import ValidationError
+
+    try:
+        cfg = ExperimentConfig.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        raise ValueError(f"{path}: {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+    if cfg.run.anchors.plan != "anchors":
+        raise ValueError(f"{path}: run.anchors.plan: the anchors arm must use plan 'anchors' (the dense arm is derived from it)")
+    return cfg

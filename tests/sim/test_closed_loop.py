@@ -1,0 +1,44 @@
+"""Executing predictions in a closed-loop episode: an anchor by a smooth motion, or (dense
+baseline) a chunk of actions followed at a fixed spacing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from anchordp3.schemas.run import RunConfig
+from anchordp3.schemas.state import ARMS
+from anchordp3.sim.closed_loop import MIN_MOVE_STEPS, EvalEpisode
+
+
+@pytest.fixture(scope="module")
+def episode() -> EvalEpisode:
+    cfg = RunConfig.model_validate({"name": "cl", "tasks": ["place_mouse"], "seeds": "0", "cameras": {"width": 64, "height": 48}})
+    return EvalEpisode("place_mouse", 1000, cfg.world())
+
+
+def _target(ep: EvalEpisode, offset: float, gripper: float) -> np.ndarray:
+    state = ep.robot.state().copy()
+    for arm in ARMS:
+        state[ep.layout.qpos(arm)] += offset
+        state[ep.layout.gripper(arm)] = gripper
+    return state
+
+
+def test_following_a_chunk_commands_each_action_after_its_spacing(episode):
+    ep = episode
+    steps0 = ep.steps
+    targets = np.stack([_target(ep, 0.02, 0.8), _target(ep, 0.04, 0.6)])
+    used = ep.follow(targets, steps_each=3)
+    assert used == 6 and ep.steps == steps0 + 6
+    np.testing.assert_allclose(ep.robot.joint_target(), ep.joint_goal(targets[-1]), atol=1e-9)
+
+
+def test_executing_an_anchor_ends_at_its_joint_and_gripper_targets(episode):
+    ep = episode
+    target = _target(ep, -0.05, 1.0)
+    used = ep.execute(target)
+    assert used >= MIN_MOVE_STEPS
+    np.testing.assert_allclose(ep.robot.joint_target(), ep.joint_goal(target), atol=1e-9)
+    obs = ep.observe()
+    assert len(obs.views) == 4 and obs.state.shape == (ep.layout.dim,)
