@@ -17,6 +17,7 @@ from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.show import show_frame
 from anchordp3.pipeline.training import MODELS, load_training_config, train_models, training_summary
 from anchordp3.schemas.run import RunConfig, load_run_config
+from anchordp3.schemas.training import TrainingConfig
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 DEMO_CONFIG = CONFIGS / "demo.yaml"
@@ -26,7 +27,8 @@ DEMO_TRAINING = CONFIGS / "demo_training.yaml"
 @dataclass(frozen=True)
 class DemoOptions:
     """episodes: evaluation episodes per task; max_decisions: cap on policy calls per evaluation
-    episode (keeps the demo's length bounded); train/evaluate: stop earlier when False."""
+    episode (keeps the demo's length bounded); train/evaluate: stop earlier when False;
+    training: the training settings (None: the embedded ``configs/demo_training.yaml``)."""
 
     episodes: int = 1
     max_decisions: int | None = 40
@@ -34,6 +36,7 @@ class DemoOptions:
     train: bool = True
     evaluate: bool = True
     address: str | None = None
+    training: TrainingConfig | None = None
 
 
 def demo_config(seeds: str | None = None) -> RunConfig:
@@ -54,7 +57,7 @@ def run_demo(run_dir: Path, cfg: RunConfig, say: Callable[[str], None] = print, 
     if not opts.train:
         return png
     say("\n== 2/3 training: segmenter, instruction classifier, anchor diffusion policy")
-    results = train_models(run_dir, MODELS, load_training_config(DEMO_TRAINING), say=say)
+    results = train_models(run_dir, MODELS, opts.training or load_training_config(DEMO_TRAINING), say=say)
     say(training_summary(results))
     if not opts.evaluate:
         return png

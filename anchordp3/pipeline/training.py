@@ -26,7 +26,6 @@ from typing import Any
 
 import torch
 import yaml
-from pydantic import ValidationError
 
 import anchordp3
 from anchordp3.dataset.files import file_sha256
@@ -38,6 +37,7 @@ from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.dataset import INFO_FILE
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.run import config_hash, load_run_config
+from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 from anchordp3.schemas.training import TrainingConfig, training_preset
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.training_loop import MODEL_FILE, TrainResult, format_metrics, format_seconds
@@ -68,27 +68,13 @@ def load_training_config(path: Path | None = None, preset: str = "cpu", steps: i
     ``optim.steps``) and ``device``. Errors name the file and the field."""
     data: dict[str, Any] = training_preset(preset).model_dump(mode="json")
     if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such training config")
-        try:
-            overlay = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise ValueError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-        if not isinstance(overlay, dict):
-            raise ValueError(f"{path}: expected a mapping of training config fields at the top level")
-        data = _merge(data, overlay)
+        data = _merge(data, read_yaml_mapping(path, "training config"))
     if steps is not None:
         for name in MODELS:
             data[name]["optim"]["steps"] = steps
     if device is not None:
         data["device"] = device
-    try:
-        return TrainingConfig.model_validate(data)
-    except ValidationError as e:
-        err = e.errors()[0]
-        where = f"{path}: " if path is not None else ""
-        raise ValueError(f"{where}{'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+    return validate_mapping(TrainingConfig, data, path)
 
 
 def _merge(base: dict, overlay: dict) -> dict:

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.training import TrainingConfig
+from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 
 
 class ExperimentEvalConfig(BaseModel):
@@ -36,22 +36,7 @@ class ExperimentConfig(BaseModel):
 
 def load_experiment_config(path: Path) -> ExperimentConfig:
     """Read and validate a YAML experiment config. Errors name the file and the field path."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such experiment config")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ValueError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping with run, training and eval at the top level")
-    from pydantic import ValidationError
-
-    try:
-        cfg = ExperimentConfig.model_validate(data)
-    except ValidationError as e:
-        err = e.errors()[0]
-        raise ValueError(f"{path}: {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+    cfg = validate_mapping(ExperimentConfig, read_yaml_mapping(path, "experiment config"), path)
     if cfg.run.anchors.plan != "anchors":
         raise ValueError(f"{path}: run.anchors.plan: the anchors arm must use plan 'anchors' (the dense arm is derived from it)")
     return cfg

@@ -7,12 +7,12 @@ import json
 from pathlib import Path
 from typing import Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from anchordp3.schemas.camera import CameraRigConfig
 from anchordp3.schemas.dataset import WriteConfig
 from anchordp3.schemas.episode import parse_seeds
+from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 from anchordp3.schemas.randomization import PRESETS
 from anchordp3.schemas.sim import SimConfig, WorldConfig
 from anchordp3.schemas.randomization import preset as preset_config
@@ -131,13 +131,4 @@ def config_hash(obj) -> str:
 
 def load_run_config(path: Path) -> RunConfig:
     """Read and validate a YAML run config. Errors name the file and the field path."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such config file")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ValueError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping of config fields at the top level")
-    return RunConfig.model_validate(data)
+    return validate_mapping(RunConfig, read_yaml_mapping(path, "config"), path)

@@ -15,9 +15,9 @@ from anchordp3.schemas.sim import WorldConfig
 from anchordp3.schemas.state import ARMS
 from anchordp3.sim.cameras import ViewCapture
 from anchordp3.sim.episode import build
+from anchordp3.sim.expert import GRIPPER_SECONDS, HOLD_MAX_STEPS, HOLD_STEPS, HOLD_TOLERANCE
 
 MIN_MOVE_STEPS = 8  # shortest anchor motion, control steps
-HOLD_STEPS = 4  # steps holding the target after each motion
 PEAK_OVER_MEAN = 1.875  # peak / mean speed of a minimum-jerk profile
 
 
@@ -76,23 +76,37 @@ class EvalEpisode:
             goal[self.layout.gripper(arm)] = np.clip(target_state[self.layout.gripper(arm)], 0.0, 1.0)
         return goal
 
-    def execute(self, target_state: np.ndarray, hold_steps: int = HOLD_STEPS) -> int:
+    def execute(self, target_state: np.ndarray) -> int:
         """Move from the commanded joint target to the anchor's joint and gripper targets along a
-        minimum-jerk profile no faster than the robot's joint speed limit, then hold a few steps.
+        minimum-jerk profile, timed as the expert times its moves: no faster than the robot's joint
+        speed limit, a full gripper stroke in ``GRIPPER_SECONDS``; then hold the target as the
+        expert does before it tags an anchor (a few steps, then until the arms have reached it).
         Stops at the step limit; returns the control steps used."""
         start = self.robot.joint_target()
         end = self.joint_goal(target_state)
-        q = np.concatenate([np.arange(self.layout.qpos(a).start, self.layout.qpos(a).stop) for a in ARMS])
-        delta = float(np.abs(end[q] - start[q]).max()) if len(q) else 0.0
-        n = max(int(np.ceil(delta / self.robot.spec.max_joint_speed / self.dt * PEAK_OVER_MEAN)), MIN_MOVE_STEPS)
+        q = np.concatenate([np.arange(self.layout.dim)[self.layout.qpos(a)] for a in ARMS])
+        g = [self.layout.gripper(a) for a in ARMS]
+        joint_steps = float(np.abs(end[q] - start[q]).max()) / self.robot.spec.max_joint_speed / self.dt * PEAK_OVER_MEAN
+        grip_steps = float(np.abs(end[g] - start[g]).max()) * GRIPPER_SECONDS / self.dt
+        n = max(int(np.ceil(max(joint_steps, grip_steps))), MIN_MOVE_STEPS)
         used = 0
-        for f in list(min_jerk(n)) + [1.0] * hold_steps:
+        for f in min_jerk(n):
+            if self.steps >= self.step_limit:
+                return used
+            self._step(start + f * (end - start))
+            used += 1
+        for i in range(HOLD_MAX_STEPS):
             if self.steps >= self.step_limit:
                 break
-            self.world.control_step(start + f * (end - start))
-            self.steps += 1
+            if i >= HOLD_STEPS and float(np.abs(self.robot.state()[q] - end[q]).max()) < HOLD_TOLERANCE:
+                break
+            self._step(end)
             used += 1
         return used
+
+    def _step(self, action: np.ndarray) -> None:
+        self.world.control_step(action)
+        self.steps += 1
 
     def follow(self, targets: np.ndarray, steps_each: int) -> int:
         """Execute an action chunk, the dense baseline's way: ``targets (n, 32)`` commanded states
@@ -106,8 +120,7 @@ class EvalEpisode:
             for k in range(1, steps_each + 1):
                 if self.steps >= self.step_limit:
                     return used
-                self.world.control_step(start + (k / steps_each) * (end - start))
-                self.steps += 1
+                self._step(start + (k / steps_each) * (end - start))
                 used += 1
             start = end
         return used

@@ -23,6 +23,10 @@ from anchordp3.schemas.state import ARMS
 from anchordp3.sim.world import World
 
 KEYPOSES = ("PG", "TGO", "TGC", "PP", "TPC", "TPO", "HM")
+GRIPPER_SECONDS = 0.4  # a full gripper stroke (open to closed), seconds
+HOLD_STEPS = 4  # control steps the target is held after each move, at least
+HOLD_MAX_STEPS = 25  # ... and at most, while the arms have not reached it
+HOLD_TOLERANCE = 0.01  # largest arm-joint error at which a target counts as reached, radians
 
 
 class ExpertFailure(Exception):
@@ -71,7 +75,8 @@ class Expert:
     max_steps: the task's control-step limit; exceeding it raises ``ExpertFailure("step_limit")``.
     """
 
-    def __init__(self, world: World, max_steps: int, linear_speed: float = 0.25, gripper_seconds: float = 0.4, hold_steps: int = 4):
+    def __init__(self, world: World, max_steps: int, linear_speed: float = 0.25, gripper_seconds: float = GRIPPER_SECONDS,
+                 hold_steps: int = HOLD_STEPS):
         self.world, self.robot = world, world.robot
         self.layout = world.robot.layout
         self.max_steps = max_steps
@@ -141,7 +146,7 @@ class Expert:
         self._hold()
         self._tag(name, self._arm_label(values))
 
-    def _hold(self, tol: float = 0.01, max_steps: int = 25) -> None:
+    def _hold(self, tol: float = HOLD_TOLERANCE, max_steps: int = HOLD_MAX_STEPS) -> None:
         """Hold the target for ``hold_steps`` control steps, then until every arm joint is within
         ``tol`` radians of it (at most ``max_steps`` in all), so anchors are states actually reached."""
         arms = np.concatenate([np.arange(self.layout.dim)[self.layout.qpos(a)] for a in ARMS])

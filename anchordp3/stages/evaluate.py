@@ -4,8 +4,10 @@ Each decision: render the four cameras → fused, cropped, FPS-sampled 11-d poin
 segmenter's critical probability as the 12th channel → the policy (EMA weights, with the point
 encoder of the task the classifier read from a held-out-family instruction) predicts the next
 8 anchors → the first anchor's joint and gripper targets are executed by a smooth joint-space
-motion (a run trained on the dense baseline's plan predicts the next 8 commanded actions instead,
-and its first ``dense.execute`` are followed at the plan's action spacing). Repeat until success, the task's step limit, or ``max_decisions``.
+motion timed as the expert times its moves (a run trained on the dense baseline's plan predicts
+the next 8 commanded actions instead, and its first ``dense.execute`` are followed at the plan's
+action spacing). Repeat until success, the task's step limit, or ``max_decisions``. Carrying out
+the expert's own labels this way succeeds (``stages/oracle.py``): the protocol's ceiling is checked.
 
 Failure modes: ``None`` on success, else ``layout_failure`` / ``unstable`` (the scene could not be
 built or settled), ``no_points`` (nothing inside the workspace box), ``wrong_task`` (the
@@ -26,6 +28,7 @@ import torch
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.instructions import episode_instruction
 from anchordp3.schemas.run import RunConfig
+from anchordp3.schemas.stages import AnchorsConfig
 from anchordp3.schemas.training import TASK_NAMES, task_id
 from anchordp3.sim.closed_loop import EvalEpisode, Observation
 from anchordp3.sim.tasks.base import LayoutFailure
@@ -104,6 +107,15 @@ def decision_seed(task: str, seed: int, decision: int) -> int:
     return zlib.crc32(f"eval/{task}/{seed}/{decision}".encode())
 
 
+def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig) -> int:
+    """Carry out one decision's prediction ``pred (H, 32)``: the first anchor by a smooth motion,
+    or, for a run of the dense plan (predicted commanded actions), a chunk of ``dense.execute``
+    actions at the plan's spacing. Returns the control steps used."""
+    if cfg.plan == "dense":
+        return ep.follow(pred[:cfg.dense.execute], cfg.dense.action_stride)
+    return ep.execute(pred[0])
+
+
 STRIP_FRAMES = 8  # frames in an episode's strip picture, evenly spaced over its decisions
 
 
@@ -166,9 +178,5 @@ def evaluate_episode(run_dir: Path, task: str, seed: int, models: EvalModels, cf
             points, _ = frame_features(frames_dict(obs), 0, cfg.features, s)
         except ValueError:
             return record(False, ep.steps, ep.step_limit, decisions, "no_points")
-        pred = models.anchors(points, obs.state, predicted, s)
-        if cfg.anchors.plan == "dense":  # the dense baseline predicts actions: follow a chunk of them
-            ep.follow(pred[:cfg.anchors.dense.execute], cfg.anchors.dense.action_stride)
-        else:
-            ep.execute(pred[0])
+        act(ep, models.anchors(points, obs.state, predicted, s), cfg.anchors)
         decisions += 1

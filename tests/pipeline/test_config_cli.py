@@ -41,6 +41,16 @@ def test_validate_says_ok_for_the_shipped_configs():
         assert res.output.startswith("OK")
 
 
+def test_the_shipped_training_and_experiment_configs_load():
+    from anchordp3.pipeline.training import load_training_config
+    from anchordp3.schemas.experiment import load_experiment_config
+
+    for name in ("training.yaml", "demo_training.yaml"):
+        assert load_training_config(DEMO.parent / name).loop.cpu_threads == 1
+    exp = load_experiment_config(DEMO.parent / "experiment.yaml")
+    assert exp.run.anchors.plan == "anchors" and exp.run.anchors.dense.frame_stride == 3
+
+
 @pytest.mark.parametrize("what, key", [("run", "tasks"), ("manifest", "items")])
 def test_schema_is_json_schema_of_the_run_config_or_the_manifest(what, key):
     res = cli.invoke(app, ["config", "schema", "--what", what])

@@ -42,3 +42,19 @@ def test_executing_an_anchor_ends_at_its_joint_and_gripper_targets(episode):
     np.testing.assert_allclose(ep.robot.joint_target(), ep.joint_goal(target), atol=1e-9)
     obs = ep.observe()
     assert len(obs.views) == 4 and obs.state.shape == (ep.layout.dim,)
+
+
+@pytest.mark.parametrize("task, seed", [("place_mouse", 0), ("place_phone_stand", 1), ("stack_blocks_three", 0)])
+@pytest.mark.parametrize("plan", ["anchors", "dense"])
+def test_carrying_out_the_experts_own_labels_completes_the_task(tmp_path, task, seed, plan):
+    """The evaluation protocol's ceiling: a perfect policy succeeds (each of these failed once
+    when anchor moves were timed faster than the expert's gripper strokes)."""
+    from anchordp3.stages.oracle import oracle_episode
+    from anchordp3.stages.rollout import load_episode, rollout
+
+    cfg = RunConfig.model_validate({"name": "oracle", "tasks": [task], "seeds": str(seed), "cameras": {"width": 32, "height": 24},
+                                    "anchors": {"plan": plan}})
+    rec = rollout(task, seed, cfg.world(), cfg.preset, tmp_path)
+    assert rec.success
+    res = oracle_episode(rec, load_episode(tmp_path, rec), cfg)
+    assert res.success and res.steps <= rec.steps + 25 * res.decisions

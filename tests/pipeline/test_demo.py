@@ -1,0 +1,28 @@
+"""``anchordp3 demo`` wires data, training and evaluation together and ends with the success table
+(here on a tiny config and tiny networks; the embedded demo takes minutes)."""
+
+from __future__ import annotations
+
+from anchordp3.pipeline.demo import DemoOptions, demo_config, run_demo
+from anchordp3.schemas.run import RunConfig
+from anchordp3.schemas.training import TrainingConfig
+from tiny_models import tiny_data, tiny_training
+
+
+def test_the_embedded_demo_covers_all_eight_tasks():
+    cfg = demo_config()
+    assert len(cfg.tasks) == 8 and demo_config("0").seed_list == [0]
+
+
+def test_demo_runs_data_training_and_evaluation_and_prints_the_success_table(ray_session, tmp_path):
+    lines: list[str] = []
+    cfg = RunConfig.model_validate(tiny_data("tiny-demo", ["place_bell"], "0-1"))
+    training = TrainingConfig.model_validate(tiny_training(3, 3, 3, loop={"log_interval_s": 30.0, "cpu_threads": 1}, device="cpu"))
+    report = run_demo(tmp_path, cfg, say=lines.append, opts=DemoOptions(max_decisions=2, workers=1, training=training))
+    assert report == tmp_path / "eval" / "report.md" and report.is_file()
+    out = "\n".join(lines)
+    assert (tmp_path / "frame.png").is_file() and (tmp_path / "models" / "policy" / "model.pt").is_file()
+    rows = out.splitlines()
+    header = max(i for i, row in enumerate(rows) if "95% CI" in row)  # the success table comes last, then where to look
+    assert rows[header].startswith("task") and rows[header + 2].startswith("place_bell")
+    assert any(str(report) in row for row in rows[header:])
