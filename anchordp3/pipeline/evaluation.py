@@ -10,6 +10,7 @@ and ``report.md``.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
@@ -31,6 +32,7 @@ EVAL_DIR = "eval"
 STAGE = "evaluate"
 SEED_OFFSET = 1000
 MODEL_NAMES = ("segmenter", "classifier", "policy")
+PROTOCOL_MODULES = ("anchordp3.stages.evaluate", "anchordp3.sim.closed_loop")
 
 
 @dataclass(frozen=True)
@@ -108,8 +110,19 @@ class EvalWorker:
         return evaluate_episode(self.run_dir, task, seed, self.models, self.cfg, max_decisions, path).to_dict()
 
 
+def protocol_digest() -> str:
+    """Digest of the code that defines the evaluation protocol (the decision loop and how a
+    prediction is carried out): a change to it makes earlier evaluation records stale."""
+    from importlib.util import find_spec
+
+    h = hashlib.sha256()
+    for name in PROTOCOL_MODULES:  # read, not imported: the driver stays free of the simulator
+        h.update(Path(find_spec(name).origin).read_bytes())
+    return h.hexdigest()[:16]
+
+
 def _fingerprint(run_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprint:
-    upstream = {}
+    upstream = {"protocol": protocol_digest()}
     for name in MODEL_NAMES:
         path = Path(run_dir) / "models" / name / "model.pt"
         if not path.is_file():
