@@ -98,29 +98,48 @@ class _Stats:
         return f"{s:>8}: {already + self.done[s]}/{total} done, {self.failed[s]} failed, {rate:.2f}/s, ETA {eta}"
 
 
-class ActorCalls:
-    """Which call on an actor is executing, to tell the item that killed an actor from the calls
-    queued behind it (an actor runs its calls one at a time, oldest first)."""
+class CrashTriage:
+    """Who is to blame when an actor dies.
+
+    The errors alone cannot tell: the call that killed the process, calls whose replies died with
+    it, and calls sent while it restarted all fail alike. So every call lost with an actor is
+    retried free, as a *suspect*, and a suspect runs alone on an actor known to be up (it answered
+    a ping): a crash then has exactly one cause, and only that crash costs its item an attempt.
+    Actors are ``(stage, index)``; items are ``(stage, item id)``."""
 
     def __init__(self):
-        self.order: dict = {}      # actor key → call refs, oldest first
-        self.lost: set = set()     # calls that were queued on an actor when it died
+        self.suspects: set = set()  # items lost with an actor
+        self.down: set = set()      # actors that died and have not answered a ping since
+        self.alone: dict = {}       # actor → the suspect running alone on it
 
-    def submitted(self, actor, ref) -> None:
-        self.order.setdefault(actor, deque()).append(ref)
-
-    def actor_died(self, actor, ref) -> bool:
-        """``ref`` failed because its actor died: True if it was the call executing (its item is to
-        blame), False if it was only queued behind (it did not run; retry it free)."""
-        q = self.order[actor]
-        if ref in self.lost or q[0] is not ref:
+    def can_take(self, actor, item, load: int, cap: int) -> bool:
+        """Whether ``item`` may be sent to ``actor``, which has ``load`` calls in flight now."""
+        if actor in self.down or actor in self.alone:
             return False
-        self.lost.update(r for r in q if r is not ref)
-        return True
+        return load == 0 if item in self.suspects else load < cap
 
-    def finished(self, actor, ref) -> None:
-        self.order[actor].remove(ref)
-        self.lost.discard(ref)
+    def submitted(self, actor, item) -> None:
+        if item in self.suspects:
+            self.alone[actor] = item
+
+    def lost(self, actor, item) -> bool:
+        """A call of ``item`` failed because ``actor`` died: True if the item is to blame (it ran
+        alone there), False if it is retried free. Either way it is a suspect from now on."""
+        blame = self.alone.get(actor) == item
+        self.suspects.add(item)
+        self.down.add(actor)
+        return blame
+
+    def finished(self, actor, item, ok: bool) -> None:
+        """A call of ``item`` on ``actor`` came back (``ok``: it succeeded)."""
+        if self.alone.get(actor) == item:
+            del self.alone[actor]
+        if ok:
+            self.suspects.discard(item)
+
+    def up(self, actor) -> None:
+        """``actor`` answered a ping: it takes calls again."""
+        self.down.discard(actor)
 
 
 class Runner:
@@ -265,43 +284,68 @@ class Runner:
             return
 
         pools = self._start_pools(enabled, queues)
-        in_flight: dict = {}  # ObjectRef → (stage, item id, key, payload, attempt, actor index)
+        in_flight: dict = {}  # ObjectRef → (stage, item id, key, attempt, actor index)
         load = {s: [0] * len(pools.get(s, [])) for s in DATA_STAGES}
-        calls = ActorCalls()
+        triage = CrashTriage()
+        pings: dict = {}      # ObjectRef of a ping → actor (stage, index) that died
+        ping_due: dict = {}   # actor → when to ping it (again)
         attempts: dict[tuple[str, str], int] = {}
         last_print = 0.0
         cap = self.cfg.execution.in_flight_per_worker
         try:
             while True:
                 for s in reversed(enabled):  # downstream first: finish episodes before starting new ones
-                    while queues[s] and pools.get(s) and min(load[s]) < cap:
-                        key = queues[s].popleft()
-                        if s == "write":
-                            item_id, payload = f"shard/{key:05d}", self.shard_payload(stores, key)
-                        else:
-                            item_id, payload = episode_id(*key), self.item_payload(stores, s, key)
-                        a = int(min(range(len(load[s])), key=lambda i: load[s][i]))
+                    while queues[s] and pools.get(s):
+                        key = queues[s][0]
+                        item_id = f"shard/{key:05d}" if s == "write" else episode_id(*key)
+                        free = [a for a in range(len(load[s])) if triage.can_take((s, a), (s, item_id), load[s][a], cap)]
+                        if not free:
+                            break
+                        queues[s].popleft()
+                        payload = self.shard_payload(stores, key) if s == "write" else self.item_payload(stores, s, key)
+                        a = min(free, key=lambda i: load[s][i])
                         attempt = attempts.get((s, item_id), 0) + 1
                         attempts[(s, item_id)] = attempt
                         ref = pools[s][a].run.remote(item_id, payload, attempt)
                         in_flight[ref] = (s, item_id, key, attempt, a)
-                        calls.submitted((s, a), ref)
+                        triage.submitted((s, a), (s, item_id))
                         load[s][a] += 1
-                if not in_flight:
+                now = time.perf_counter()
+                for actor, due in list(ping_due.items()):  # a dead actor is trusted again once it answers
+                    if now >= due:
+                        del ping_due[actor]
+                        pings[pools[actor[0]][actor[1]].ping.remote()] = actor
+                if not in_flight and not pings and not ping_due:
                     break
-                ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=0.5)
+                if not in_flight and not pings:
+                    time.sleep(0.1)  # only pings waiting for their time
+                    continue
+                ready, _ = ray.wait(list(in_flight) + list(pings), num_returns=1, timeout=0.5)
                 for ref in ready:
+                    if ref in pings:
+                        actor = pings.pop(ref)
+                        try:
+                            ray.get(ref)
+                            triage.up(actor)
+                        except ray.exceptions.RayActorError:
+                            ping_due[actor] = time.perf_counter() + 0.5
+                        continue
                     s, item_id, key, attempt, a = in_flight.pop(ref)
                     load[s][a] -= 1
                     try:
                         res = ray.get(ref)
                     except Exception as e:  # noqa: BLE001 - any item failure is retried, then recorded
-                        if isinstance(e, ray.exceptions.RayActorError) and not calls.actor_died((s, a), ref):
-                            calls.finished((s, a), ref)
-                            attempts[(s, item_id)] -= 1  # queued behind the item that killed the actor: not its fault
-                            queues[s].appendleft(key)
-                            continue
-                        calls.finished((s, a), ref)
+                        if isinstance(e, ray.exceptions.RayActorError):
+                            if (s, a) not in triage.down and not any(v == (s, a) for v in pings.values()):
+                                ping_due[(s, a)] = time.perf_counter() + 0.5
+                            blame = triage.lost((s, a), (s, item_id))
+                            triage.finished((s, a), (s, item_id), ok=False)
+                            if not blame:  # lost with the actor, not (yet) known to be its fault
+                                attempts[(s, item_id)] -= 1
+                                queues[s].appendleft(key)
+                                continue
+                        else:
+                            triage.finished((s, a), (s, item_id), ok=False)
                         if attempt < self.cfg.execution.max_attempts:
                             queues[s].appendleft(key)
                             continue
@@ -312,7 +356,7 @@ class Runner:
                         self.stats.failed[s] += 1
                         self._check_failures(stores, s)
                     else:
-                        calls.finished((s, a), ref)
+                        triage.finished((s, a), (s, item_id), ok=True)
                         stores[s].record(ItemRecord(item=item_id, status="done", output=res["output"], checksum=res["checksum"],
                                                     seconds=res["seconds"], attempts=attempt, info=res["info"]))
                         if s == "features":

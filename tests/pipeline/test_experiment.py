@@ -19,14 +19,13 @@ from tiny_models import tiny_data, tiny_training
 QUIET = lambda m: None  # noqa: E731
 
 
-def test_dense_seed_count_takes_the_longest_seed_prefix_within_the_budget():
+def test_dense_seed_count_takes_the_seed_prefix_nearest_to_the_budget():
     steps = {("a", 0): 30, ("b", 0): 30, ("a", 1): 60, ("b", 1): 31, ("a", 2): 90}  # ("b", 2) was not kept
     assert dense_frame_count(31, 3) == 11
     # cumulative dense frames: seed 0 → 10 + 10 = 20, seed 1 → 20 + 20 + 11 = 51, seed 2 → 51 + 30 = 81
-    assert dense_seed_count(["a", "b"], [0, 1, 2], steps, budget=50, stride=3) == 1
-    assert dense_seed_count(["a", "b"], [0, 1, 2], steps, budget=51, stride=3) == 2
-    assert dense_seed_count(["a", "b"], [0, 1, 2], steps, budget=81, stride=3) == 3
-    assert dense_seed_count(["a", "b"], [0, 1, 2], steps, budget=5, stride=3) == 1    # never empty
+    count = lambda budget: dense_seed_count(["a", "b"], [0, 1, 2], steps, budget=budget, stride=3)  # noqa: E731
+    assert [count(b) for b in (35, 36, 66, 67, 200)] == [1, 2, 2, 3, 3]  # 35 is as near 20 as 51, 66 as 51 as 81: the fewer
+    assert count(5) == 1  # never empty
 
 
 def test_dense_arm_is_the_same_run_with_the_dense_plan_on_a_seed_prefix():
@@ -56,8 +55,8 @@ def test_the_experiment_runs_both_arms_at_the_same_render_budget(ray_session, tm
     })
     results = run_experiment(tmp_path, cfg, say=QUIET)
     a, d = results["arms"]["anchors"], results["arms"]["dense"]
-    # the dense arm renders no more than the anchors arm, on a prefix of its seeds
-    assert 0 < d["frames"] <= a["frames"] and 1 <= d["trajectories"] < a["trajectories"]
+    # the dense arm renders about as much as the anchors arm, on fewer trajectories (a prefix of its seeds)
+    assert 1 <= d["trajectories"] < a["trajectories"] and 0.5 * a["frames"] <= d["frames"] <= 1.5 * a["frames"]
     assert results["trajectories_per_budget_ratio"] == pytest.approx(
         (a["trajectories"] / a["frames"]) / (d["trajectories"] / d["frames"]))
     frames = rendered_frames(tmp_path / "dense")
@@ -74,6 +73,8 @@ def test_the_experiment_runs_both_arms_at_the_same_render_budget(ray_session, tm
     assert "Trajectories per render budget" in report and "place_mouse" in report
     assert (tmp_path / "comparison.png").read_bytes()[:4] == b"\x89PNG"
     assert json.loads((tmp_path / "results.json").read_text()) == json.loads(json.dumps(results))
-    # re-running resumes: nothing left to do, the same outcome
+    # re-running resumes: nothing left to do, the same outcome, phase times only grow
     again = run_experiment(tmp_path, cfg, say=QUIET)
     assert again["arms"]["dense"]["seeds"] == d["seeds"] and again["arms"]["anchors"]["success"] == a["success"]
+    assert all(again["arms"][arm]["seconds"][ph] >= results["arms"][arm]["seconds"][ph]
+               for arm in ("anchors", "dense") for ph in ("data", "train", "eval"))
