@@ -188,16 +188,23 @@ class ShardedDataset:
                 f"tasks={len(self.info.tasks)}, shards={len(self.info.shards)})")
 
 
-def open_dataset(path: str | Path) -> ShardedDataset:
-    """Open a dataset folder written by the write stage; ValueError naming the path when it is not one."""
-    root = Path(path)
-    info_path = root / INFO_FILE
+def read_dataset_info(root: Path) -> DatasetInfo:
+    """The ``dataset.json`` of the dataset folder ``root``; ValueError naming the path when there is
+    none or it does not validate."""
+    info_path = Path(root) / INFO_FILE
     if not info_path.is_file():
         raise ValueError(f"{root}: not an anchordp3 dataset (no {INFO_FILE}; unfinished or foreign folder)")
     try:
-        info = DatasetInfo.model_validate_json(info_path.read_bytes())
+        return DatasetInfo.model_validate_json(info_path.read_bytes())
     except ValidationError as e:
         raise ValueError(f"{info_path}: not a valid dataset description ({e.error_count()} errors)") from None
+
+
+def open_dataset(path: str | Path) -> ShardedDataset:
+    """Open a dataset folder written by the write stage; ValueError naming the path when it is not one."""
+    root = Path(path)
+    info = read_dataset_info(root)
+    info_path = root / INFO_FILE
     if info.schema_version != SCHEMA_VERSION:
         raise ValueError(f"{info_path}: schema version {info.schema_version}, this code reads {SCHEMA_VERSION}")
     table = read_table(root / INDEX_FILE, INDEX_SCHEMA)

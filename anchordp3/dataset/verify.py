@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
-from anchordp3.dataset.files import tree_checksum
-from anchordp3.schemas.dataset import INFO_FILE, DatasetInfo
+from anchordp3.dataset.files import file_sha256, tree_checksum
+from anchordp3.dataset.reader import read_dataset_info
 
 
 class Problem(BaseModel):
@@ -57,7 +56,7 @@ def verify_file(path: Path, checksum: str) -> Problem | None:
     path = Path(path)
     if not path.is_file():
         return Problem(path=str(path), kind="missing")
-    got = hashlib.sha256(path.read_bytes()).hexdigest()
+    got = file_sha256(path)
     if got != checksum:
         return Problem(path=str(path), kind="corrupt", detail=f"checksum {got[:12]} != recorded {checksum[:12]}")
     return None
@@ -68,13 +67,7 @@ def verify_dataset(path: str | Path) -> VerifyReport:
 
     Raises ValueError naming the path when there is no readable ``dataset.json``."""
     root = Path(path)
-    info_path = root / INFO_FILE
-    if not info_path.is_file():
-        raise ValueError(f"{root}: not an anchordp3 dataset (no {INFO_FILE})")
-    try:
-        info = DatasetInfo.model_validate_json(info_path.read_bytes())
-    except ValidationError as e:
-        raise ValueError(f"{info_path}: not a valid dataset description ({e.error_count()} errors)") from None
+    info = read_dataset_info(root)
     problems = [p for s in info.shards if (p := verify_shard(root / s.path, s.checksum))]
     problems += [p for name, sha in info.files.items() if (p := verify_file(root / name, sha))]
     return VerifyReport(dataset=str(root), checked=len(info.shards) + len(info.files), problems=problems)

@@ -336,7 +336,7 @@ class Runner:
                         res = ray.get(ref)
                     except Exception as e:  # noqa: BLE001 - any item failure is retried, then recorded
                         if isinstance(e, ray.exceptions.RayActorError):
-                            if (s, a) not in triage.down and not any(v == (s, a) for v in pings.values()):
+                            if (s, a) not in triage.down:  # its first lost call: ping it until it is back
                                 ping_due[(s, a)] = time.perf_counter() + 0.5
                             blame = triage.lost((s, a), (s, item_id))
                             triage.finished((s, a), (s, item_id), ok=False)

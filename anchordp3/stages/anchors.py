@@ -87,6 +87,12 @@ def anchor_states(states: np.ndarray, actions: np.ndarray, t: np.ndarray) -> np.
     return out
 
 
+def horizon_indices(start: int, horizon: int, n: int, stride: int = 1) -> np.ndarray:
+    """Indices ``start, start + stride, …`` (``horizon`` of them) into a sequence of ``n``, padded
+    with the last: the label positions of a frame. Returns (horizon,) int64."""
+    return np.minimum(start + stride * np.arange(horizon), n - 1)
+
+
 def commanded_states(states: np.ndarray, actions: np.ndarray, steps: np.ndarray) -> np.ndarray:
     """Dense labels: the state ``states[s + 1]`` reached by command ``actions[s]``, with every
     joint and gripper as commanded. steps: (L,) ints in 0..T-1. Returns (L, D) float64."""
@@ -194,7 +200,7 @@ def plan_frames(task: str, seed: int, anchors: Anchors, cfg: AnchorsConfig) -> p
         if len(steps) == 0:
             continue
         picks = np.sort(rng.choice(steps, size=min(cfg.frames_per_interval, len(steps)), replace=False))
-        label_idx = np.minimum(np.arange(i, i + H), A - 1)
+        label_idx = horizon_indices(i, H, A)
         label = anchors.states[label_idx].astype(np.float32).reshape(-1)
         names = ",".join(anchors.names[j] for j in label_idx)
         for t in picks.tolist():
@@ -214,7 +220,7 @@ def plan_dense_frames(task: str, seed: int, anchors: Anchors, actions: np.ndarra
     H, T, d = cfg.horizon, len(actions), cfg.dense
     rows: list[dict] = []
     for t in range(0, T, d.frame_stride):
-        steps = np.minimum(t + d.action_stride * np.arange(H), T - 1)
+        steps = horizon_indices(t, H, T, d.action_stride)
         label = commanded_states(states, actions, steps).astype(np.float32).reshape(-1)
         nxt = int(np.searchsorted(anchors.t, t, side="right"))
         rows.append(dict(task=task, seed=int(seed), t=int(t), next_anchor=min(nxt, len(anchors.t) - 1),

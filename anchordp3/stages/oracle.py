@@ -17,7 +17,7 @@ import numpy as np
 from anchordp3.schemas.episode import EpisodeRecord
 from anchordp3.schemas.run import RunConfig
 from anchordp3.sim.closed_loop import EvalEpisode
-from anchordp3.stages.anchors import commanded_states, episode_anchors
+from anchordp3.stages.anchors import commanded_states, episode_anchors, horizon_indices
 from anchordp3.stages.evaluate import act
 
 
@@ -38,11 +38,11 @@ def oracle_episode(record: EpisodeRecord, arrays: dict[str, np.ndarray], cfg: Ru
     if cfg.anchors.plan == "dense":
         d = cfg.anchors.dense
         actions, states = arrays["actions"], arrays["states"]
-        labels = [commanded_states(states, actions, np.minimum(t + d.action_stride * np.arange(H), len(actions) - 1))
+        labels = [commanded_states(states, actions, horizon_indices(t, H, len(actions), d.action_stride))
                   for t in range(0, len(actions), d.execute * d.action_stride)]
     else:
         a = episode_anchors(record, arrays, cfg.anchors).states
-        labels = [a[np.minimum(np.arange(i, i + H), len(a) - 1)] for i in range(len(a))]
+        labels = [a[horizon_indices(i, H, len(a))] for i in range(len(a))]
     decisions = 0
     for pred in labels:
         if ep.success() or ep.steps >= ep.step_limit:

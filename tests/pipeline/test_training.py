@@ -45,14 +45,6 @@ def tiny_cfg(steps: int | None = None, device: str = "auto", **loop) -> Training
     return TrainingConfig.model_validate({**data, "device": device})
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def train_yaml(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("cfg") / "training.yaml"
