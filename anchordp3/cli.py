@@ -291,7 +291,13 @@ train_app.command("all")(_train_command(["segmenter", "classifier", "policy"], "
 @app.command("eval")
 @cli_errors
 def eval_(
-    run_dir: Path = typer.Option(..., "--run-dir", help="Run directory with trained models (from `anchordp3 train all`)."),
+    run_dir: Path = typer.Option(None, "--run-dir", help="Run directory with trained models (from `anchordp3 train all`)."),
+    models: str = typer.Option(None, "--models", help="Models folder (segmenter/, classifier/, policy/) or 'pretrained' (default: the run's)."),
+    tasks: str = typer.Option(None, "--tasks", help="Comma-separated tasks (default: every task the models were trained on)."),
+    seeds: str = typer.Option(None, "--seeds", help="Seeds, e.g. 2000-2049, or 'train' for the training seeds (default: --episodes unseen seeds)."),
+    out: Path = typer.Option(None, "--out", help="Evaluation folder (default: <run>/eval)."),
+    preset: str = typer.Option(None, "--preset", help="Randomization preset of the scenes (default: the training data's)."),
+    through: str = typer.Option("pose", "--through", help="Carry out anchors through their end-effector poses (IK) or their joints (the report)."),
     episodes: int = typer.Option(10, "--episodes", min=1, help="Episodes per task (seeds disjoint from training)."),
     workers: int = typer.Option(2, "--workers", min=1, help="Ray actors running episodes in parallel."),
     max_decisions: int = typer.Option(None, "--max-decisions", min=1, help="Cap on policy calls per episode (default: only the step limit)."),
@@ -299,14 +305,17 @@ def eval_(
     first_seed: int = typer.Option(None, "--first-seed", min=0, help="First evaluation seed (default: max training seed + 1000)."),
     address: str = typer.Option(None, "--address", help="Ray cluster address (default: a local Ray)."),
 ) -> None:
-    """Closed-loop evaluation: success rate per task with 95 % intervals, table, chart, report in <run>/eval."""
-    from anchordp3.pipeline.evaluation import EvalOptions, evaluation_summary, run_evaluation
+    """Closed-loop evaluation: success rate per task with 95 % intervals, table, chart, report in <run>/eval (or --out)."""
+    from anchordp3.pipeline.evaluation import EXECUTE_THROUGH, EvalOptions, evaluation_summary, run_evaluation
 
+    if through not in EXECUTE_THROUGH:
+        raise ValueError(f"--through: expected one of {list(EXECUTE_THROUGH)}, got {through!r}")
     opts = EvalOptions(episodes=episodes, workers=workers, max_decisions=max_decisions, device=device, address=address,
-                       first_seed=first_seed)
+                       first_seed=first_seed, through=through, models=models, out=out, preset=preset, seeds=seeds,
+                       tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()) if tasks else None)
     records = run_evaluation(run_dir, opts, say=lambda m: typer.echo(m, err=True))
     typer.echo(evaluation_summary(records))
-    typer.echo(f"report: {run_dir / 'eval' / 'report.md'}")
+    typer.echo(f"report: {(out or Path(run_dir) / 'eval') / 'report.md'}")
 
 experiment_app = typer.Typer(no_args_is_help=True, help="Experiments that compare data recipes end to end.")
 app.add_typer(experiment_app, name="experiment")
@@ -327,6 +336,41 @@ def anchors_vs_dense(
     results = run_experiment(out, load_experiment_config(config), say=lambda m: typer.echo(m, err=True), address=address)
     typer.echo(experiment_report(results))
     typer.echo(f"report: {out / 'report.md'}")
+
+
+@experiment_app.command("recipe")
+@cli_errors
+def recipe(
+    config: Path = typer.Argument(Path("configs/recipe.yaml"), help="Recipe config (YAML): run, training, eval."),
+    out: Path = typer.Option(Path("runs/recipe"), "--out", help="Recipe folder (re-running resumes it)."),
+    address: str = typer.Option(None, "--address", help="Ray cluster to join (default: a local Ray)."),
+) -> None:
+    """The best known recipe end to end: data, the three models, closed-loop evaluation on unseen
+    seeds and on training seeds; report with success per task, first-anchor errors and wall times."""
+    from anchordp3.pipeline.recipe import recipe_report, run_recipe
+    from anchordp3.schemas.recipe import load_recipe_config
+
+    results = run_recipe(out, load_recipe_config(config), say=lambda m: typer.echo(m, err=True), address=address)
+    typer.echo(recipe_report(results))
+    typer.echo(f"report: {out / 'report.md'}")
+
+
+export_app = typer.Typer(no_args_is_help=True, help="Take models or data out of a run.")
+app.add_typer(export_app, name="export")
+
+
+@export_app.command("pretrained")
+@cli_errors
+def export_pretrained(
+    run_dir: Path = typer.Argument(..., help="Run directory with trained models (e.g. a recipe's run/)."),
+    dest: Path = typer.Option(None, "--dest", help="Destination folder (default: the package's pretrained/, what `--models pretrained` loads)."),
+    command: str = typer.Option("", "--command", help="The command that made the models, recorded beside them."),
+) -> None:
+    """Ship a run's three models as a self-contained models folder (EMA policy weights, the
+    classifier's changed tensors only), with their manifests, training config and run config."""
+    from anchordp3.pipeline.shipping import ship_models
+
+    typer.echo(ship_models(run_dir, dest, command))
 
 
 def main() -> None:  # pragma: no cover - console entry point

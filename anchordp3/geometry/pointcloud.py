@@ -94,3 +94,19 @@ def crop_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """
     points = np.asarray(points)
     return np.all((points >= np.asarray(lo)) & (points <= np.asarray(hi)), axis=1)
+
+
+def table_top_height(points: np.ndarray, bin_size: float = 0.002) -> float | None:
+    """Height of the dominant horizontal surface (the table top) of a fused cloud, metres.
+
+    The table fills most views, so its top is the most populated ``bin_size`` z-slab; the height is
+    the median z of the points in that slab and its two neighbours. points: (M, 3) metres.
+    Returns None for an empty cloud."""
+    z = np.asarray(points)[:, 2].astype(np.float64)
+    if len(z) == 0:
+        return None
+    edges = np.arange(z.min(), z.max() + 2 * bin_size, bin_size)
+    counts, edges = np.histogram(z, bins=edges)
+    k = int(np.argmax(counts))
+    near = z[(z >= edges[max(k - 1, 0)]) & (z <= edges[min(k + 2, len(edges) - 1)])]
+    return float(np.median(near))

@@ -105,13 +105,40 @@ class InstructionClassifier(nn.Module):
             self.train(was_training)
         return torch.cat(out) if out else torch.empty(0, dtype=torch.long, device=self.device)
 
+    def freeze_below(self, tune_layers: int | None) -> None:
+        """Fine-tune only the top ``tune_layers`` transformer layers (and the pooler): the
+        embeddings and the layers below keep their pretrained weights (``requires_grad`` off).
+        None fine-tunes the whole encoder (the report)."""
+        if tune_layers is None:
+            return
+        layers = self.encoder.encoder.layer
+        keep = {f"encoder.layer.{i}." for i in range(max(0, len(layers) - tune_layers), len(layers))}
+        for name, p in self.encoder.named_parameters():
+            p.requires_grad_(name.startswith("pooler.") or any(name.startswith(k) for k in keep))
+
+    def changed_state_dict(self) -> dict[str, torch.Tensor]:
+        """The tensors of the ``state_dict`` that differ from the pretrained encoder's (and the head):
+        what a checkpoint must hold, since the rest loads from ``weights_dir``. Shapes as in
+        ``state_dict``, on the CPU."""
+        from transformers import AutoModel
+
+        base = AutoModel.from_pretrained(self.weights_dir, local_files_only=True).state_dict()
+        out = {}
+        for k, v in self.state_dict().items():
+            b = base.get(k[len("encoder."):]) if k.startswith("encoder.") else None
+            if b is None or b.shape != v.shape or not torch.equal(b, v.detach().cpu()):
+                out[k] = v.detach().cpu()
+        return out
+
     def parameter_groups(self, encoder_lr: float, head_lr: float, weight_decay: float) -> list[dict]:
         """Optimizer groups: the pretrained encoder at ``encoder_lr``, the new head at ``head_lr``;
-        no weight decay on biases and LayerNorm weights."""
+        no weight decay on biases and LayerNorm weights; frozen parameters left out."""
         groups: list[dict] = []
         for module, lr in ((self.encoder, encoder_lr), (self.head, head_lr)):
             decay, no_decay = [], []
             for name, p in module.named_parameters():
+                if not p.requires_grad:
+                    continue
                 (no_decay if p.ndim < 2 or "LayerNorm" in name or "norm" in name.lower() else decay).append(p)
             groups += [{"params": decay, "lr": lr, "weight_decay": weight_decay}, {"params": no_decay, "lr": lr, "weight_decay": 0.0}]
         return [g for g in groups if g["params"]]

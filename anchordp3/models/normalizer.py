@@ -47,8 +47,10 @@ class MinMaxNormalizer(nn.Module):
         x = x.reshape(-1, x.shape[-1])
         return cls.from_stats({"min": x.min(dim=0).values, "max": x.max(dim=0).values})
 
-    def set_limits(self, lo: torch.Tensor, hi: torch.Tensor) -> None:
-        """Fit in place from per-dimension limits ``lo, hi: (dim,)``."""
+    def set_limits(self, lo: torch.Tensor, hi: torch.Tensor, min_range: float = 0.0) -> None:
+        """Fit in place from per-dimension limits ``lo, hi: (dim,)``. A dimension spanning less than
+        ``min_range`` (data units) is mapped as if it spanned ``min_range`` around its centre, so
+        a nearly constant one is not stretched hundreds of times (0: DP3's plain limits)."""
         lo = torch.as_tensor(lo, dtype=torch.float64).reshape(-1)
         hi = torch.as_tensor(hi, dtype=torch.float64).reshape(-1)
         if lo.numel() != self.dim or hi.numel() != self.dim:
@@ -57,6 +59,9 @@ class MinMaxNormalizer(nn.Module):
             raise ValueError("stats: min / max contain NaN or inf")
         if (hi < lo).any():
             raise ValueError(f"stats: max < min at dims {torch.nonzero(hi < lo).flatten().tolist()}")
+        if min_range > 0:
+            widen = torch.clamp(min_range - (hi - lo), min=0.0) / 2
+            lo, hi = lo - widen, hi + widen
         span = hi - lo
         const = span < RANGE_EPS
         scale = torch.where(const, torch.ones_like(span), 2.0 / span)

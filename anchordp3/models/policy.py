@@ -74,7 +74,7 @@ class AnchorDiffusionPolicy(nn.Module):
             if key not in stats:
                 raise KeyError(f"stats: missing {key!r} (need 'state' and 'anchors', optional 'points')")
             fitted = MinMaxNormalizer.from_stats(stats[key])
-            norm.set_limits(fitted.min, fitted.max)
+            norm.set_limits(fitted.min, fitted.max, self.config.normalizer_min_range)
         if "points" in stats:
             fitted = MinMaxNormalizer.from_stats(stats["points"])
             lo, hi = fitted.min, fitted.max

@@ -25,6 +25,7 @@ from anchordp3.dataset.files import file_sha256
 from anchordp3.pipeline.runner import ensure_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
+from anchordp3.schemas.episode import parse_seeds
 from anchordp3.schemas.run import RunConfig, config_hash, load_run_config
 from anchordp3.stages.files import atomic_write_bytes
 
@@ -33,6 +34,12 @@ STAGE = "evaluate"
 SEED_OFFSET = 1000
 MODEL_NAMES = ("segmenter", "classifier", "policy")
 PROTOCOL_MODULES = ("anchordp3.stages.evaluate", "anchordp3.sim.closed_loop")
+EXECUTE_THROUGH = ("pose", "joints")  # stages.evaluate.EXECUTE_THROUGH, without importing the simulator
+
+
+PRETRAINED = "pretrained"
+PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"  # the shipped models, inside the package
+RUN_CONFIG_FILE = "run_config.yaml"  # beside shipped models: the data config they were trained on
 
 
 @dataclass(frozen=True)
@@ -41,7 +48,14 @@ class EvalOptions:
     (None: only the step limit); device: torch device of the actors (auto: CUDA when the Ray
     cluster has GPUs, each actor holding an equal share); first_seed: the first evaluation seed
     (None: ``max(training seeds) + 1000``; it must lie above every training seed); strips: episodes
-    per task (the first seeds) that also get a frame strip in ``strips/<task>/<seed>.png``."""
+    per task (the first seeds) that also get a frame strip in ``strips/<task>/<seed>.png``; through:
+    how an anchor is carried out, ``pose`` (its end-effector poses by IK) or ``joints`` (the report).
+
+    models: a models folder (``segmenter/``, ``classifier/``, ``policy/``) or ``pretrained`` (None:
+    the run's ``models/``); tasks: a subset of the tasks (None: the config's); seeds: the seeds to
+    evaluate, a spec like ``2000-2049`` or ``train`` for the training seeds (None: ``episodes``
+    unseen seeds from ``first_seed``); out: the evaluation folder (None: ``<run>/eval``); preset:
+    the randomization preset of the evaluation scenes (None: the training data's)."""
 
     episodes: int = 10
     workers: int = 2
@@ -51,6 +65,56 @@ class EvalOptions:
     address: str | None = None
     first_seed: int | None = None
     strips: int = 2
+    through: str = "pose"
+    models: str | None = None
+    tasks: tuple[str, ...] | None = None
+    seeds: str | None = None
+    out: Path | None = None
+    preset: str | None = None
+
+
+def models_folder(run_dir: Path | None, models: str | None) -> Path:
+    """The folder of the three trained models: ``models`` (a path, or ``pretrained`` for the
+    shipped ones), else ``<run>/models``."""
+    if models == PRETRAINED:
+        return PRETRAINED_DIR
+    if models is not None:
+        return Path(models)
+    if run_dir is None:
+        raise ValueError("--models: give a models folder (or 'pretrained') or a --run-dir")
+    return Path(run_dir) / "models"
+
+
+def eval_run_config(run_dir: Path | None, models_dir: Path, opts: EvalOptions) -> RunConfig:
+    """The data config the models were trained on (the run's ``config.yaml``, or the
+    ``run_config.yaml`` shipped beside a models folder), restricted to ``opts.tasks`` and set to
+    ``opts.preset``."""
+    for path in ([Path(run_dir) / "config.yaml"] if run_dir is not None else []) + [models_dir / RUN_CONFIG_FILE,
+                                                                                       models_dir.parent / "config.yaml"]:
+        if path.is_file():
+            cfg = load_run_config(path)
+            break
+    else:
+        raise FileNotFoundError(f"{models_dir}: no {RUN_CONFIG_FILE} beside the models and no run config; give --run-dir")
+    update: dict = {}
+    if opts.tasks:
+        unknown = sorted(set(opts.tasks) - set(cfg.tasks))
+        if unknown:
+            raise ValueError(f"--tasks: {unknown} not among the tasks the models were trained on ({cfg.tasks})")
+        update["tasks"] = list(opts.tasks)
+    if opts.preset:
+        update["preset"] = opts.preset
+    return RunConfig.model_validate({**cfg.model_dump(mode="json"), **update}) if update else cfg
+
+
+def selected_seeds(cfg: RunConfig, opts: EvalOptions) -> list[int]:
+    """The evaluation seeds: ``opts.seeds`` (``train``: the training seeds), else ``opts.episodes``
+    seeds disjoint from training."""
+    if opts.seeds == "train":
+        return cfg.seed_list
+    if opts.seeds:
+        return parse_seeds(opts.seeds, "--seeds")
+    return eval_seeds(cfg, opts.episodes, opts.first_seed)
 
 
 def eval_seeds(cfg: RunConfig, episodes: int, first_seed: int | None = None) -> list[int]:
@@ -93,21 +157,21 @@ def episode_item(task: str, seed: int) -> str:
 class EvalWorker:
     """Loads the models once, then runs episodes one at a time."""
 
-    def __init__(self, run_dir: str, cfg_json: str, device: str):
+    def __init__(self, models_dir: str, out_dir: str, cfg_json: str, device: str):
         import torch
 
         from anchordp3.stages.evaluate import EvalModels
 
         torch.set_num_threads(1)
-        self.run_dir = Path(run_dir)
+        self.out = Path(out_dir)
         self.cfg = RunConfig.model_validate_json(cfg_json)
-        self.models = EvalModels(self.run_dir, device)
+        self.models = EvalModels(Path(models_dir), device)
 
-    def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None) -> dict:
+    def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None, through: str) -> dict:
         from anchordp3.stages.evaluate import evaluate_episode
 
-        path = self.run_dir / EVAL_DIR / strip if strip else None
-        return evaluate_episode(self.run_dir, task, seed, self.models, self.cfg, max_decisions, path).to_dict()
+        path = self.out / strip if strip else None
+        return evaluate_episode(task, seed, self.models, self.cfg, max_decisions, path, through).to_dict()
 
 
 def protocol_digest() -> str:
@@ -121,45 +185,53 @@ def protocol_digest() -> str:
     return h.hexdigest()[:16]
 
 
-def _fingerprint(run_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprint:
+def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprint:
     upstream = {"protocol": protocol_digest()}
     for name in MODEL_NAMES:
-        path = Path(run_dir) / "models" / name / "model.pt"
+        path = Path(models_dir) / name / "model.pt"
         if not path.is_file():
-            raise FileNotFoundError(f"{path}: no trained {name}; run `anchordp3 train all --run-dir {run_dir}` first")
+            raise FileNotFoundError(f"{path}: no trained {name}; run `anchordp3 train all --run-dir RUN` first")
         upstream[name] = file_sha256(path)[:16]
     part = {"world": cfg.world().model_dump(mode="json"), "features": cfg.features.model_dump(mode="json"),
-            "max_decisions": opts.max_decisions, "plan": cfg.anchors.plan, "dense": cfg.anchors.dense.model_dump(mode="json")}
+            "max_decisions": opts.max_decisions, "through": opts.through, "plan": cfg.anchors.plan, "dense": cfg.anchors.dense.model_dump(mode="json")}
     return Fingerprint(code_version=anchordp3.__version__, config_hash=config_hash(part), upstream=upstream)
 
 
-def run_evaluation(run_dir: Path, opts: EvalOptions = EvalOptions(), cfg: RunConfig | None = None,
+def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg: RunConfig | None = None,
                    say: Callable[[str], None] = print) -> list[dict]:
-    """Evaluate (or finish evaluating) every task of the run on ``opts.episodes`` seeds each;
-    returns the per-episode records (dicts of ``EvalRecord``) in task, seed order."""
-    run_dir = Path(run_dir)
-    cfg = cfg or load_run_config(run_dir / "config.yaml")
-    out = run_dir / EVAL_DIR
-    fp = _fingerprint(run_dir, cfg, opts)
+    """Evaluate (or finish evaluating) the models (``opts.models``, else the run's) on every task
+    (``opts.tasks``, else the config's) and seed (``selected_seeds``); returns the per-episode
+    records (dicts of ``EvalRecord`` with ``seen``: the seed was a training seed) in task, seed
+    order. Output in ``opts.out`` (else ``<run>/eval``)."""
+    models_dir = models_folder(run_dir, opts.models)
+    cfg = cfg or eval_run_config(run_dir, models_dir, opts)
+    if opts.out is not None:
+        out = Path(opts.out)
+    elif run_dir is not None:
+        out = Path(run_dir) / EVAL_DIR
+    else:
+        raise ValueError("--out: give an evaluation folder when there is no --run-dir")
+    fp = _fingerprint(models_dir, cfg, opts)
     try:
         store = ManifestStore(out, STAGE, fp)
     except StaleStageError:
         say("evaluate: the models or settings changed since the last evaluation; starting over")
         store = ManifestStore(out, STAGE, fp, reset=True)
-    todo = [(t, s) for t in cfg.tasks for s in eval_seeds(cfg, opts.episodes, opts.first_seed)]
+    seeds = selected_seeds(cfg, opts)
+    todo = [(t, s) for t in cfg.tasks for s in seeds]
     pending = [ep for ep in todo if not store.done(episode_item(*ep))]
     say(f"evaluate: {len(todo)} episodes ({len(todo) - len(pending)} already done), {opts.workers} workers")
     if pending:
         ensure_ray(opts.address)
         n = max(1, min(opts.workers, len(pending)))
         device, gpus = actor_device(opts.device, n)
-        workers = [EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(str(run_dir), cfg.model_dump_json(), device)
-                   for _ in range(n)]
-        strip_seeds = set(eval_seeds(cfg, min(opts.strips, opts.episodes), opts.first_seed)) if opts.strips else set()
+        workers = [EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(
+            str(models_dir), str(out), cfg.model_dump_json(), device) for _ in range(n)]
+        strip_seeds = set(seeds[:opts.strips])
 
         def submit(w, ep):
             strip = f"strips/{ep[0]}/{ep[1]:06d}.png" if ep[1] in strip_seeds else None
-            running[w.run.remote(ep[0], ep[1], opts.max_decisions, strip)] = (w, ep)
+            running[w.run.remote(ep[0], ep[1], opts.max_decisions, strip, opts.through)] = (w, ep)
 
         queue = list(pending)
         running: dict = {}
@@ -188,7 +260,8 @@ def run_evaluation(run_dir: Path, opts: EvalOptions = EvalOptions(), cfg: RunCon
             for w in workers:
                 ray.kill(w)
     store.compact(len(todo), complete=all(store.done(episode_item(*ep)) for ep in todo))
-    records = [json.loads((out / store.items[episode_item(*ep)].output).read_text()) for ep in todo]
+    train_seeds = set(cfg.seed_list)
+    records = [{**json.loads((out / store.items[episode_item(*ep)].output).read_text()), "seen": ep[1] in train_seeds} for ep in todo]
     write_reports(out, records, cfg, opts)
     return records
 

@@ -19,10 +19,10 @@ render budget, success per task, wall time of each phase).
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from anchordp3.pipeline.phases import PhaseClock
 from anchordp3.pipeline.evaluation import SEED_OFFSET, EvalOptions, run_evaluation, summarize, wilson_interval
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import read_manifest
@@ -87,18 +87,9 @@ def run_experiment(out: Path, cfg: ExperimentConfig, say: Callable[[str], None] 
     """Run (or resume) both arms into ``out``; returns the results written to ``results.json``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    times = out / PHASES_FILE
-    seconds: dict[str, dict[str, float]] = json.loads(times.read_text()) if times.is_file() else {a: {} for a in ARMS}
+    clock = PhaseClock(out / PHASES_FILE, ARMS, say)
+    timed, seconds = clock.timed, clock.seconds
     first_seed = max(cfg.run.seed_list) + SEED_OFFSET
-
-    def timed(arm: str, phase: str, fn):
-        """Run a phase; its wall time adds to what earlier invocations spent on it."""
-        say(f"experiment: {arm} arm, {phase}")
-        t0 = time.perf_counter()
-        res = fn()
-        seconds[arm][phase] = seconds[arm].get(phase, 0.0) + time.perf_counter() - t0
-        atomic_write_bytes(times, json.dumps(seconds, indent=1).encode())
-        return res
 
     runs = {"anchors": cfg.run}
     timed("anchors", "data", lambda: run_pipeline(cfg.run, out / "anchors", RunOptions(address=address), say=say))
@@ -112,7 +103,7 @@ def run_experiment(out: Path, cfg: ExperimentConfig, say: Callable[[str], None] 
     for arm in ARMS:
         timed(arm, "train", lambda: train_models(out / arm, MODELS, cfg.training, say=say))
         opts = EvalOptions(episodes=cfg.eval.episodes, workers=cfg.eval.workers, max_decisions=cfg.eval.max_decisions,
-                           address=address, first_seed=first_seed)
+                           address=address, first_seed=first_seed, through=cfg.eval.through)
         records[arm] = timed(arm, "eval", lambda: run_evaluation(out / arm, opts, runs[arm], say=say))
 
     results = _results(out, runs, records, seconds)

@@ -55,7 +55,7 @@ LAYOUT: tuple[ArraySpec, ...] = (
     ArraySpec(name="task_id", sample_shape=(), dtype="<i2", description="Index into DatasetInfo.tasks."),
     ArraySpec(name="episode_index", sample_shape=(), dtype="<i4", description="Index of the episode in the plan."),
     ArraySpec(name="timestep", sample_shape=(), dtype="<i4", description="Control step of the frame."),
-    ArraySpec(name="kind", sample_shape=(), dtype="|u1", description="0 = expert frame, 1 = DAgger frame."),
+    ArraySpec(name="kind", sample_shape=(), dtype="|u1", description="Frame kind code: 0 = expert frame, 1 = DAgger frame, 2 = rest frame (at rest at an anchor)."),
     ArraySpec(name="instruction_index", sample_shape=(), dtype="<i4",
               description="Index into the shard group's 'instructions' attribute."),
 )

@@ -4,6 +4,7 @@ settings shared by the two arms of the comparison."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -20,6 +21,7 @@ class ExperimentEvalConfig(BaseModel):
     episodes: int = Field(default=3, ge=1, description="Evaluation episodes per task and arm.")
     workers: int = Field(default=2, ge=1, description="Ray actors running episodes in parallel.")
     max_decisions: int | None = Field(default=None, ge=1, description="Cap on policy calls per episode (None: only the task's step limit).")
+    through: Literal["pose", "joints"] = Field(default="pose", description="Carry out an anchor through its end-effector poses (IK) or its joint angles (the report).")
 
 
 class ExperimentConfig(BaseModel):

@@ -6,8 +6,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-FrameKind = Literal["expert", "dagger"]
-FRAME_KINDS: tuple[str, ...] = ("expert", "dagger")  # index = the ``kind`` code stored in arrays
+FrameKind = Literal["expert", "dagger", "rest"]
+FRAME_KINDS: tuple[str, ...] = ("expert", "dagger", "rest")
+"""Index = the ``kind`` code stored in arrays. ``rest`` is an expert frame observed exactly at an
+anchor, where the robot rests when a closed-loop decision is taken."""
 
 
 class KinematicTagConfig(BaseModel):
@@ -63,6 +65,16 @@ class AnchorsConfig(BaseModel):
     source: Literal["symbolic", "kinematic"] = Field(default="symbolic", description="Anchors from the expert's operation tags, or from motion alone.")
     horizon: int = Field(default=8, ge=1, description="H: next anchors each frame is labelled with (padded with the last anchor).")
     frames_per_interval: int = Field(default=2, ge=1, description="Random frames drawn inside each interval between consecutive anchors.")
+    rest_frames: bool = Field(
+        default=True,
+        description="Also observe each interval's start, the robot at rest at the previous anchor (home for the first): "
+                    "the state every closed-loop decision is taken in. False: the report's random frames only.")
+    relabel_reached: bool = Field(
+        default=True,
+        description="A random frame where the robot has already reached the interval's anchor (arm joints within "
+                    "reached_tolerance, grippers within 0.05) is labelled with the anchors after it, as a decision there "
+                    "would be. False: the report's labels (the interval's anchor first).")
+    reached_tolerance: float = Field(default=0.01, gt=0, description="Largest arm-joint distance to an anchor at which it counts as reached, radians (the executor's hold tolerance).")
     seed: int = Field(default=0, ge=0, description="Seed of the frame draws (combined with task and episode seed).")
     dagger: DaggerConfig = Field(default_factory=DaggerConfig, description="DAgger frames.")
     kinematic: KinematicTagConfig = Field(default_factory=KinematicTagConfig, description="Kinematic tagging thresholds.")
@@ -91,6 +103,10 @@ class FeaturesConfig(BaseModel):
     workspace_lo: tuple[float, float, float] = Field(default=(-0.65, -0.55, 0.55), description="Lower corner of the crop box, world frame, metres.")
     workspace_hi: tuple[float, float, float] = Field(default=(0.65, 0.5, 1.5), description="Upper corner of the crop box, world frame, metres.")
     normal_view: str = Field(default="head", description="Normals are oriented towards the centre of this camera.")
+    table_margin: float | None = Field(
+        default=0.005, ge=0,
+        description="Drop the table: points below the table top (estimated from the cloud, the densest horizontal slab) "
+                    "plus this many metres, as RoboTwin crops z > table + eps. None keeps the table (box crop only).")
 
     @model_validator(mode="after")
     def _check(self) -> "FeaturesConfig":

@@ -157,6 +157,10 @@ class ClassifierTrainingConfig(_Config):
         description="Optimizer of the encoder (the head uses head_lr).",
     )
     head_lr: float = Field(default=1e-3, gt=0, description="Learning rate of the freshly initialised linear head.")
+    tune_layers: int | None = Field(
+        default=None, ge=0,
+        description="Fine-tune only the top this many transformer layers (and the head); the rest keep the pretrained "
+                    "weights and stay out of model.pt, which then holds only what changed. None: the whole encoder (the report).")
 
 
 # --------------------------------------------------------------------------------------- policy
@@ -232,6 +236,11 @@ class PolicyConfig(_Config):
     state_encoder: StateEncoderConfig = Field(default_factory=StateEncoderConfig, description="The state MLP.")
     unet: UNetConfig = Field(default_factory=UNetConfig, description="The shared action expert.")
     scheduler: DiffusionSchedulerConfig = Field(default_factory=DiffusionSchedulerConfig, description="Diffusion noise schedule.")
+    normalizer_min_range: float = Field(
+        default=0.05, ge=0,
+        description="State and anchor dimensions spanning less than this (rad, m, or unitless) are normalised as if they "
+                    "spanned this much, so a nearly constant joint is not stretched thousands of times into noise "
+                    "(0: DP3's plain min/max limits).")
 
     @model_validator(mode="after")
     def _dims(self) -> PolicyConfig:
@@ -257,6 +266,7 @@ class PolicyTrainingConfig(_Config):
                     "required), the simulator label ('ground_truth'), or 'auto': the segmenter when the run has a trained one, else the label.",
     )
     val_predict_samples: int = Field(default=64, ge=0, description="Validation samples (evenly spread over the split) denoised with DDIM (EMA weights) to measure the anchor error; 0: skip.")
+    val_decision_samples: int = Field(default=256, ge=0, description="Validation decision states (rest frames, evenly spread) whose first predicted anchor is scored in cm at the gripper and rad per joint; 0: skip.")
 
 
 # -------------------------------------------------------------------------------------- top level

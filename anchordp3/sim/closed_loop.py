@@ -47,6 +47,7 @@ class EvalEpisode:
         self.layout = self.robot.layout
         self.dt = cfg.sim.control_dt
         self.steps = 0
+        self._rest_z = self._object_heights()
 
     @property
     def step_limit(self) -> int:
@@ -76,14 +77,35 @@ class EvalEpisode:
             goal[self.layout.gripper(arm)] = np.clip(target_state[self.layout.gripper(arm)], 0.0, 1.0)
         return goal
 
-    def execute(self, target_state: np.ndarray) -> int:
+    def pose_goal(self, target_state: np.ndarray) -> tuple[np.ndarray, list[str]]:
+        """The joint-space action of a 32-d anchor state executed through its end-effector poses:
+        each arm's joints solve IK for the anchor's pose, seeded from the anchor's own joints, so a
+        small joint error far up the arm does not move the gripper. An arm whose pose has no IK
+        solution keeps the anchor's joints. Returns the action and the arms that fell back."""
+        goal = self.joint_goal(target_state)
+        fell_back = []
+        for arm in ARMS:
+            pose = self.layout.ee_matrix(np.asarray(target_state, dtype=np.float64), arm)
+            q = self.robot.ik(arm, pose, seed_q=goal[self.layout.qpos(arm)])
+            if q is None:
+                fell_back.append(arm)
+            else:
+                goal[self.layout.qpos(arm)] = q
+        return goal, fell_back
+
+    def execute(self, target_state: np.ndarray, through: str = "joints") -> int:
         """Move from the commanded joint target to the anchor's joint and gripper targets along a
         minimum-jerk profile, timed as the expert times its moves: no faster than the robot's joint
         speed limit, a full gripper stroke in ``GRIPPER_SECONDS``; then hold the target as the
         expert does before it tags an anchor (a few steps, then until the arms have reached it).
-        Stops at the step limit; returns the control steps used."""
+        Stops at the step limit; returns the control steps used.
+
+        through: ``joints`` executes the anchor's joint angles (the report); ``pose`` its
+        end-effector poses by IK (``pose_goal``)."""
+        if through not in ("joints", "pose"):
+            raise ValueError(f"through: expected joints or pose, got {through!r}")
         start = self.robot.joint_target()
-        end = self.joint_goal(target_state)
+        end = self.joint_goal(target_state) if through == "joints" else self.pose_goal(target_state)[0]
         q = np.concatenate([np.arange(self.layout.dim)[self.layout.qpos(a)] for a in ARMS])
         g = [self.layout.gripper(a) for a in ARMS]
         joint_steps = float(np.abs(end[q] - start[q]).max()) / self.robot.spec.max_joint_speed / self.dt * PEAK_OVER_MEAN
@@ -127,3 +149,18 @@ class EvalEpisode:
 
     def success(self) -> bool:
         return bool(self.task.check_success())
+
+    def _object_heights(self) -> dict[str, float]:
+        objects = self.world.objects
+        return {n: float(objects[n].pose.p[2]) for n in self.task.critical_objects() if n in objects}
+
+    def lift(self) -> float:
+        """How far the highest-raised task-critical object is above where it settled, metres
+        (about 0 until something is picked up)."""
+        now = self._object_heights()
+        return max((now[n] - self._rest_z[n] for n in now), default=0.0)
+
+    def gripper_commands(self) -> np.ndarray:
+        """The commanded gripper openings of both arms ``(2,)``, 0 closed, 1 open."""
+        target = self.robot.joint_target()
+        return np.array([target[self.layout.gripper(a)] for a in ARMS])

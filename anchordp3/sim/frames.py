@@ -78,7 +78,7 @@ def render_frames(task: str, seed: int, world_cfg: WorldConfig, actions: np.ndar
     for t in range(len(actions) + 1):
         while k < len(requests) and requests[k].t == t:
             req = requests[k]
-            if req.kind == "expert":
+            if req.kind != "dagger":
                 caps, masks = observe(world, entities, cfg)
                 frames.append(RenderedFrame(caps, masks, world.robot.state(), False))
             else:

@@ -45,7 +45,7 @@ PLAN_COLUMNS = {
     "seed": "episode seed",
     "frame": "frame index within the episode's plan",
     "t": "control step observed (state index)",
-    "kind": "expert or dagger",
+    "kind": "expert, rest (at rest at the previous anchor) or dagger",
     "next_anchor": "index of the first label anchor in the episode's anchor list",
     "next_names": "keypose names of the H label anchors, comma-separated",
     "anchors": "H x 32 label states, row-major, float32",
@@ -187,28 +187,61 @@ def _rng(cfg: AnchorsConfig, task: str, seed: int, salt: str) -> np.random.Gener
     return np.random.default_rng([cfg.seed, zlib.crc32(task.encode()), int(seed), zlib.crc32(salt.encode())])
 
 
-def plan_frames(task: str, seed: int, anchors: Anchors, cfg: AnchorsConfig) -> pa.Table:
+def reached(state: np.ndarray, anchor_state: np.ndarray, tol: float) -> bool:
+    """Whether measured ``state (D,)`` has reached the measured anchor state ``anchor_state (D,)``:
+    every arm joint within ``tol`` radians and every gripper within ``GRIPPER_REACHED``."""
+    layout = layout_of(state[None])
+    for arm in ARMS:
+        if np.abs(state[layout.qpos(arm)] - anchor_state[layout.qpos(arm)]).max() >= tol:
+            return False
+        if abs(float(state[layout.gripper(arm)] - anchor_state[layout.gripper(arm)])) >= GRIPPER_REACHED:
+            return False
+    return True
+
+
+GRIPPER_REACHED = 0.05  # largest normalised gripper difference at which an anchor counts as reached
+
+
+def next_unreached(states: np.ndarray, anchor_t: np.ndarray, t: int, i: int, tol: float) -> int:
+    """The first anchor index ``j >= i`` that the robot at step ``t`` has not reached yet (the
+    last anchor when it has reached them all): what a decision taken at ``t`` should aim for."""
+    j = i
+    while j < len(anchor_t) - 1 and reached(states[t], states[anchor_t[j]], tol):
+        j += 1
+    return j
+
+
+def plan_frames(task: str, seed: int, anchors: Anchors, cfg: AnchorsConfig, states: np.ndarray | None = None) -> pa.Table:
     """The frame plan of one episode as a table with ``PLAN_COLUMNS`` (rows in time order,
-    each DAgger frame right after the expert frame of the same step)."""
+    each DAgger frame right after the expert frame of the same step).
+
+    Per interval ``[a_{i-1}, a_i)``: with ``rest_frames`` its start (the robot at rest at anchor
+    ``i - 1``, kind ``rest``), and ``frames_per_interval`` random steps after it (kind ``expert``).
+    With ``relabel_reached`` and the measured ``states (T + 1, D)``, a frame that has already
+    reached anchor ``i`` is labelled from the first anchor it has not reached."""
     rng = _rng(cfg, task, seed, "frames")
     H, A = cfg.horizon, len(anchors.t)
+    relabel = cfg.relabel_reached and states is not None
     rows: list[dict] = []
     start = 0
     for i, end in enumerate(anchors.t.tolist()):
         steps = np.arange(start, end)
-        start = end
+        first, start = int(steps[0]) if len(steps) else start, end
         if len(steps) == 0:
             continue
-        picks = np.sort(rng.choice(steps, size=min(cfg.frames_per_interval, len(steps)), replace=False))
-        label_idx = horizon_indices(i, H, A)
-        label = anchors.states[label_idx].astype(np.float32).reshape(-1)
-        names = ",".join(anchors.names[j] for j in label_idx)
-        for t in picks.tolist():
-            base = dict(task=task, seed=int(seed), t=int(t), next_anchor=i, next_names=names, anchors=label)
-            rows.append(dict(base, kind="expert", dagger_mode="", dagger_arm="", dagger_seed=0))
+        pool = steps[1:] if cfg.rest_frames else steps
+        picks = np.sort(rng.choice(pool, size=min(cfg.frames_per_interval, len(pool)), replace=False)) if len(pool) else pool
+        frames = ([(first, "rest")] if cfg.rest_frames else []) + [(int(t), "expert") for t in picks.tolist()]
+        for t, kind in frames:
+            j = next_unreached(states, anchors.t, t, i, cfg.reached_tolerance) if relabel else i
+            label_idx = horizon_indices(j, H, A)
+            label = anchors.states[label_idx].astype(np.float32).reshape(-1)
+            names = ",".join(anchors.names[k] for k in label_idx)
+            base = dict(task=task, seed=int(seed), t=t, next_anchor=j, next_names=names, anchors=label)
+            rows.append(dict(base, kind=kind, dagger_mode="", dagger_arm="", dagger_seed=0))
             if rng.random() < cfg.dagger.fraction:
                 mode = "wrong_affordance" if rng.random() < cfg.dagger.wrong_affordance_prob else "near_target"
-                arm = anchors.arms[i] if anchors.arms[i] != "both" else str(rng.choice(ARMS))
+                arm = anchors.arms[j] if anchors.arms[j] != "both" else str(rng.choice(ARMS))
                 rows.append(dict(base, kind="dagger", dagger_mode=mode, dagger_arm=arm, dagger_seed=int(rng.integers(2**31))))
     return _plan_table(rows, anchors, cfg)
 
@@ -264,7 +297,7 @@ def run_anchors(record: EpisodeRecord, rollout_dir: Path, out_dir: Path, cfg: An
     if cfg.plan == "dense":
         table = plan_dense_frames(record.task, record.seed, anchors, arrays["actions"], arrays["states"], cfg)
     else:
-        table = plan_frames(record.task, record.seed, anchors, cfg)
+        table = plan_frames(record.task, record.seed, anchors, cfg, arrays["states"])
     rel = plan_file(record.task, record.seed)
     atomic_write_bytes(Path(out_dir) / rel, table_bytes(table))
     return rel

@@ -11,7 +11,12 @@ the expert's own labels this way succeeds (``stages/oracle.py``): the protocol's
 
 Failure modes: ``None`` on success, else ``layout_failure`` / ``unstable`` (the scene could not be
 built or settled), ``no_points`` (nothing inside the workspace box), ``wrong_task`` (the
-classifier picked another task and the episode failed), ``step_limit``, ``max_decisions``.
+classifier picked another task and the episode failed), and for an episode that ran out of steps
+or decisions what the trace of its decisions shows (``diagnose``): ``stalled`` (its last decisions
+no longer moved the robot), ``grasp_missed`` (a gripper closed but nothing came up),
+``object_dropped`` (an object came up, then fell while the grippers stayed closed),
+``placed_wrong`` (an object was carried and released, but the task is not done), else
+``step_limit`` / ``max_decisions``.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.instructions import episode_instruction
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.stages import AnchorsConfig
+from anchordp3.schemas.state import ARMS
 from anchordp3.schemas.training import TASK_NAMES, task_id
 from anchordp3.sim.closed_loop import EvalEpisode, Observation
 from anchordp3.sim.tasks.base import LayoutFailure
@@ -37,8 +43,38 @@ from anchordp3.stages.train_classifier import load_classifier
 from anchordp3.stages.train_policy import load_policy
 from anchordp3.stages.train_segmenter import load_segmenter
 
-MODELS_DIR = "models"
-FAILURE_MODES = ("layout_failure", "unstable", "no_points", "wrong_task", "step_limit", "max_decisions")
+FAILURE_MODES = ("layout_failure", "unstable", "no_points", "wrong_task", "stalled", "grasp_missed", "object_dropped",
+                 "placed_wrong", "step_limit", "max_decisions")
+LIFTED = 0.03  # an object this far above where it settled has been picked up, metres
+STALL_DECISIONS = 3  # this many decisions in a row without motion make a stall
+STALL_MOTION = 0.005  # joint motion (rad) and gripper change below which a decision did nothing
+
+
+@dataclass(frozen=True)
+class DecisionTrace:
+    """What one decision did: the largest arm-joint motion it caused (rad), the gripper commands
+    after it ``(2,)``, and how far the highest task object was lifted after it (metres)."""
+
+    motion: float
+    grippers: tuple[float, float]
+    lift: float
+
+
+def diagnose(trace: list[DecisionTrace], ran_out: str) -> str:
+    """Why an episode that ran out of steps or decisions (``ran_out``) failed, from its decisions:
+    see the module docstring."""
+    last = trace[-STALL_DECISIONS:]
+    if len(last) == STALL_DECISIONS and all(d.motion < STALL_MOTION for d in last) and \
+            max(abs(a - b) for d, e in zip(last, last[1:]) for a, b in zip(d.grippers, e.grippers)) < STALL_MOTION:
+        return "stalled"
+    lifted = [d.lift > LIFTED for d in trace]
+    if not any(lifted):
+        return "grasp_missed" if any(min(d.grippers) < 0.5 for d in trace) else ran_out
+    if lifted[-1]:
+        return ran_out
+    k = max(i for i, v in enumerate(lifted) if v)  # the last decision with an object up
+    released = min(trace[k + 1].grippers) > 0.5 if k + 1 < len(trace) else False
+    return "placed_wrong" if released else "object_dropped"
 
 
 @dataclass
@@ -61,10 +97,11 @@ class EvalRecord:
 
 
 class EvalModels:
-    """The three trained models of a run, loaded once per process (EMA policy weights)."""
+    """The three trained models of a models folder (``<run>/models``, or shipped ones), loaded once
+    per process (EMA policy weights)."""
 
-    def __init__(self, run_dir: Path, device: str | torch.device = "cpu"):
-        d = Path(run_dir) / MODELS_DIR
+    def __init__(self, models_dir: Path, device: str | torch.device = "cpu"):
+        d = Path(models_dir)
         for name in ("segmenter", "classifier", "policy"):
             if not (d / name / "model.pt").is_file():
                 raise FileNotFoundError(f"{d / name / 'model.pt'}: no trained {name}; run `anchordp3 train all` first")
@@ -107,13 +144,17 @@ def decision_seed(task: str, seed: int, decision: int) -> int:
     return zlib.crc32(f"eval/{task}/{seed}/{decision}".encode())
 
 
-def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig) -> int:
-    """Carry out one decision's prediction ``pred (H, 32)``: the first anchor by a smooth motion,
+EXECUTE_THROUGH = ("pose", "joints")  # how an anchor is carried out: its end-effector poses by IK, or its joints
+
+
+def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig, through: str = "pose") -> int:
+    """Carry out one decision's prediction ``pred (H, 32)``: the first anchor by a smooth motion to
+    its end-effector poses (``through="pose"``, IK) or its joint angles (``"joints"``, the report),
     or, for a run of the dense plan (predicted commanded actions), a chunk of ``dense.execute``
     actions at the plan's spacing. Returns the control steps used."""
     if cfg.plan == "dense":
         return ep.follow(pred[:cfg.dense.execute], cfg.dense.action_stride)
-    return ep.execute(pred[0])
+    return ep.execute(pred[0], through)
 
 
 STRIP_FRAMES = 8  # frames in an episode's strip picture, evenly spaced over its decisions
@@ -135,20 +176,22 @@ def write_strip(path: Path, frames: list[tuple[np.ndarray, str]], title: str) ->
     return Path(path)
 
 
-def evaluate_episode(run_dir: Path, task: str, seed: int, models: EvalModels, cfg: RunConfig,
-                     max_decisions: int | None = None, strip: Path | None = None) -> EvalRecord:
+def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
+                     max_decisions: int | None = None, strip: Path | None = None, through: str = "pose") -> EvalRecord:
     """Run one closed-loop episode of ``task`` on ``seed`` with ``models``; see the module docstring.
-    strip: when given, the head camera's view at each decision and at the end is drawn there."""
-    del run_dir  # the models are already loaded; kept for the stage's uniform signature
+    strip: when given, the head camera's view at each decision and at the end is drawn there.
+    through: how anchors are carried out (``act``)."""
     t0 = time.perf_counter()
     frames: list[tuple[np.ndarray, str]] = []
     text = episode_instruction(task, seed, split="val").text
     predicted = models.classify(text)
     pred_name = TASK_NAMES[predicted] if 0 <= predicted < len(TASK_NAMES) else str(predicted)
 
+    trace: list[DecisionTrace] = []
+
     def record(success: bool, steps: int, limit: int, decisions: int, failure: str | None) -> EvalRecord:
-        if not success and failure in ("step_limit", "max_decisions") and predicted != task_id(task):
-            failure = "wrong_task"
+        if not success and failure in ("step_limit", "max_decisions"):
+            failure = "wrong_task" if predicted != task_id(task) else diagnose(trace, failure)
         if strip is not None and frames:
             frames.append((ep.observe().views[0].rgb, f"end t{ep.steps}"))
             write_strip(strip, frames, f"{task} seed {seed}: {'success' if success else failure} - {text}")
@@ -178,5 +221,8 @@ def evaluate_episode(run_dir: Path, task: str, seed: int, models: EvalModels, cf
             points, _ = frame_features(frames_dict(obs), 0, cfg.features, s)
         except ValueError:
             return record(False, ep.steps, ep.step_limit, decisions, "no_points")
-        act(ep, models.anchors(points, obs.state, predicted, s), cfg.anchors)
+        act(ep, models.anchors(points, obs.state, predicted, s), cfg.anchors, through)
+        joints = [i for a in ARMS for i in range(ep.layout.dim)[ep.layout.qpos(a)]]
+        moved = float(np.abs(ep.robot.state()[joints] - obs.state[joints]).max())
+        trace.append(DecisionTrace(moved, tuple(float(g) for g in ep.gripper_commands()), ep.lift()))
         decisions += 1

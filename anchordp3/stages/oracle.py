@@ -30,7 +30,7 @@ class OracleResult:
     decisions: int
 
 
-def oracle_episode(record: EpisodeRecord, arrays: dict[str, np.ndarray], cfg: RunConfig) -> OracleResult:
+def oracle_episode(record: EpisodeRecord, arrays: dict[str, np.ndarray], cfg: RunConfig, through: str = "pose") -> OracleResult:
     """Carry out the expert episode's labels (``cfg.anchors.plan``) until success, the step limit
     or the labels run out. arrays: the rollout's ``states (T + 1, 32)``, ``actions (T, J)`` and tags."""
     ep = EvalEpisode(record.task, record.seed, cfg.world())
@@ -47,6 +47,6 @@ def oracle_episode(record: EpisodeRecord, arrays: dict[str, np.ndarray], cfg: Ru
     for pred in labels:
         if ep.success() or ep.steps >= ep.step_limit:
             break
-        act(ep, pred, cfg.anchors)
+        act(ep, pred, cfg.anchors, through)
         decisions += 1
     return OracleResult(success=ep.success(), steps=ep.steps, decisions=decisions)

@@ -63,7 +63,8 @@ class ClassifierJob(TrainingJob):
         self.total_steps = optim.total_steps(len(self.train_texts))
         seed_everything(self.seed)
         self.model = InstructionClassifier(self.cfg.model).to(device).train()
-        self.params = list(self.model.parameters())
+        self.model.freeze_below(self.cfg.tune_layers)
+        self.params = [p for p in self.model.parameters() if p.requires_grad]
         groups = self.model.parameter_groups(optim.lr, self.cfg.head_lr, optim.weight_decay)
         self.optimizer = make_optimizer(groups, optim)
         self.schedule = make_lr_schedule(self.optimizer, optim, self.total_steps)
@@ -105,7 +106,8 @@ class ClassifierJob(TrainingJob):
             "config": self.cfg.model.model_dump(mode="json"),
             "training": self.cfg.model_dump(mode="json"),
             "weights_dir": str(self.model.weights_dir),
-            "state_dict": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
+            "state_dict": self.model.changed_state_dict(),
+            "partial_state_dict": True,  # tensors equal to the pretrained encoder's load from weights_dir
             "tasks": list(TASK_NAMES),
             "val_families": self.val_families,
         }
@@ -129,5 +131,7 @@ def load_classifier(path: Path, device: torch.device | str = "cpu") -> Instructi
         raise ValueError(f"{path}: not a classifier checkpoint (kind {ckpt.get('kind')!r})")
     _quiet_transformers()
     model = InstructionClassifier(ClassifierConfig.model_validate(ckpt["config"]))
-    model.load_state_dict(ckpt["state_dict"])
+    missing, unexpected = model.load_state_dict(ckpt["state_dict"], strict=not ckpt.get("partial_state_dict", False))
+    if unexpected or any(not k.startswith("encoder.") for k in missing):
+        raise ValueError(f"{path}: classifier weights do not fit the encoder in {model.weights_dir}")
     return model.to(device).eval()

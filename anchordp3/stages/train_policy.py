@@ -31,6 +31,8 @@ from anchordp3.models.ema import ExponentialMovingAverage
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
 from anchordp3.models.policy import AnchorDiffusionPolicy
+from anchordp3.schemas.stages import FRAME_KINDS
+from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import TASK_NAMES, PolicyConfig, TrainingConfig, model_task_ids
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.train_segmenter import load_segmenter, stats_limits
@@ -156,7 +158,47 @@ class PolicyJob(TrainingJob):
                 pred = model.predict(obs, generator=gen)
                 err += float(((norm(pred) - norm(obs["anchors"])) ** 2).mean()) * len(pred)
             out["anchor_mse"] = err / len(picks)
+        out.update(self.first_anchor_errors(model, gen))
         return out
+
+    @torch.no_grad()
+    def first_anchor_errors(self, model: AnchorDiffusionPolicy, gen: torch.Generator) -> dict[str, float]:
+        """The error that decides a grasp: the first predicted anchor against the true one at the
+        validation split's decision states (``rest`` frames: the robot at rest at an anchor, as in
+        closed loop; expert frames when the plan has none), per task and over all of them:
+        ``first_cm[/task]`` the gripper position error (mean over samples of the worse arm),
+        centimetres; ``first_rad[/task]`` the mean absolute arm-joint error, radians per joint."""
+        picks = self.decision_indices()
+        if not picks:
+            return {}
+        layout = StateLayout((self.cfg.model.action_dim - 18) // 2 - 1)
+        xyz = [np.arange(layout.dim)[layout.ee_xyz(a)] for a in ARMS]
+        joints = np.concatenate([np.arange(layout.dim)[layout.qpos(a)] for a in ARMS])
+        cm, rad, task = [], [], []
+        size = self.cfg.optim.batch_size
+        for i in range(0, len(picks), size):
+            obs = self.observation(collate_samples(self.val_ds.__getitems__(picks[i:i + size])))
+            pred = model.predict(obs, generator=gen)[:, 0].cpu().numpy()
+            true = obs["anchors"][:, 0].cpu().numpy()
+            cm.append(100 * np.max([np.linalg.norm(pred[:, k] - true[:, k], axis=1) for k in xyz], axis=0))
+            rad.append(np.abs(pred[:, joints] - true[:, joints]).mean(axis=1))
+            task.append(obs["task_id"].cpu().numpy())
+        cm_all, rad_all, task_all = np.concatenate(cm), np.concatenate(rad), np.concatenate(task)
+        out = {"first_cm": float(cm_all.mean()), "first_rad": float(rad_all.mean())}
+        for k in np.unique(task_all).tolist():
+            sel = task_all == k
+            out[f"first_cm/{TASK_NAMES[k]}"] = float(cm_all[sel].mean())
+            out[f"first_rad/{TASK_NAMES[k]}"] = float(rad_all[sel].mean())
+        return out
+
+    def decision_indices(self) -> list[int]:
+        """Positions in the validation split of its decision states (see ``first_anchor_errors``),
+        up to ``val_decision_samples``, evenly spaced."""
+        kinds = np.array([self.data.sample(int(i), ())["kind"] for i in self.val_ds.samples], dtype=np.int64)
+        code = FRAME_KINDS.index("rest") if (kinds == FRAME_KINDS.index("rest")).any() else FRAME_KINDS.index("expert")
+        pos = np.nonzero(kinds == code)[0]
+        k = min(self.cfg.val_decision_samples, len(pos))
+        return sorted({int(pos[int(round(x))]) for x in np.linspace(0, len(pos) - 1, k)}) if k else []
 
     def predict_indices(self) -> list[int]:
         """Positions in the validation split of the samples ``anchor_mse`` is measured on: up to

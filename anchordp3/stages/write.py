@@ -48,6 +48,7 @@ from anchordp3.schemas.dataset import (
     ShardStats,
     WriteConfig,
 )
+from anchordp3.schemas.stages import FRAME_KINDS
 from anchordp3.stages.features import features_file
 from anchordp3.stages.files import atomic_write_bytes
 
@@ -90,8 +91,8 @@ def load_features(path: Path) -> dict[str, np.ndarray]:
     for name in ("points", "state", "anchors"):
         if not np.isfinite(arrays[name]).all():
             raise ValueError(f"{path}: {name} holds NaN or inf")
-    if arrays["kind"].size and arrays["kind"].max() > 1:
-        raise ValueError(f"{path}: kind must be 0 (expert) or 1 (DAgger)")
+    if arrays["kind"].size and arrays["kind"].max() >= len(FRAME_KINDS):
+        raise ValueError(f"{path}: kind must be a code of {list(FRAME_KINDS)} (0..{len(FRAME_KINDS) - 1})")
     if arrays["labels"].size and arrays["labels"].max() > 1:
         raise ValueError(f"{path}: labels must be 0 or 1 (1 = task-critical point)")
     t = arrays["t"]

@@ -112,3 +112,16 @@ def test_crop_box_is_inclusive() -> None:
     keep = crop_box(points, lo=np.zeros(3), hi=np.ones(3))
     assert keep.dtype == bool
     np.testing.assert_array_equal(keep, [True, True, True, False, False])
+
+
+def test_table_top_is_the_densest_horizontal_slab_under_objects_and_walls() -> None:
+    from anchordp3.geometry.pointcloud import table_top_height
+
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-0.6, 0.6, (5000, 2)), np.full(5000, 0.7213)]
+    box = np.c_[rng.uniform(-0.05, 0.05, (800, 2)), rng.uniform(0.7213, 0.76, 800)]  # an object on it
+    wall = np.c_[rng.uniform(-0.6, 0.6, 1500), np.full(1500, 0.5), rng.uniform(0.5, 1.4, 1500)]
+    front = np.c_[rng.uniform(-0.6, 0.6, 900), np.full(900, -0.4), rng.uniform(0.0, 0.7213, 900)]
+    cloud = rng.permutation(np.concatenate([table, box, wall, front]))
+    assert abs(table_top_height(cloud) - 0.7213) < 1e-6
+    assert table_top_height(np.zeros((0, 3))) is None

@@ -51,3 +51,16 @@ def test_bad_stats_are_clear_errors() -> None:
         MinMaxNormalizer.from_stats({"min": [0.0]})
     with pytest.raises(ValueError, match="last axis"):
         MinMaxNormalizer(3).normalize(torch.zeros(2, 4))
+
+
+def test_a_nearly_constant_dimension_is_not_stretched_past_the_minimum_range():
+    import torch
+
+    from anchordp3.models.normalizer import MinMaxNormalizer
+
+    norm = MinMaxNormalizer(2)
+    norm.set_limits(torch.tensor([0.0, 1.0]), torch.tensor([0.5, 1.0003]), min_range=0.05)
+    y = norm(torch.tensor([[0.25, 1.00015], [0.5, 1.0003]]))
+    assert torch.allclose(y[:, 0], torch.tensor([0.0, 1.0]), atol=1e-6)  # a wide dimension keeps its limits
+    assert torch.allclose(y[:, 1], torch.tensor([0.0, 0.0003 / 0.05]), atol=1e-4)  # 0.0003 of span maps to 0.012, not 2
+    assert torch.allclose(norm.unnormalize(y), torch.tensor([[0.25, 1.00015], [0.5, 1.0003]]), atol=1e-6)

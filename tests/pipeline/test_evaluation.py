@@ -98,3 +98,32 @@ def test_eval_cli(trained_run, tmp_path):
     print("\n" + (trained_run / EVAL_DIR / "report.md").read_text())
     res = CliRunner().invoke(app, ["eval", "--run-dir", str(tmp_path)])
     assert res.exit_code == 2 and "error:" in res.output
+
+
+def test_eval_takes_any_models_tasks_seeds_and_folder_and_marks_training_seeds(trained_run, tmp_path):
+    opts = EvalOptions(models=str(trained_run / "models"), tasks=("place_mouse",), seeds="train", out=tmp_path / "ev",
+                       workers=1, max_decisions=1, strips=0)
+    records = run_evaluation(None, opts, say=QUIET)  # the run config is found beside the models folder
+    assert [(r["seed"], r["seen"]) for r in records] == [(0, True), (1, True)]
+    assert (tmp_path / "ev" / "report.md").is_file() and not (trained_run / EVAL_DIR / "ev").exists()
+    unseen = run_evaluation(trained_run, EvalOptions(seeds="1500", out=tmp_path / "ev2", workers=1, max_decisions=1), say=QUIET)
+    assert [(r["seed"], r["seen"]) for r in unseen] == [(1500, False)]
+    with pytest.raises(ValueError, match="--tasks"):
+        run_evaluation(trained_run, EvalOptions(tasks=("place_bell",), out=tmp_path / "ev3"), say=QUIET)
+
+
+def test_shipped_models_are_small_and_decide_exactly_as_the_run_s_own(trained_run, tmp_path):
+    from anchordp3.pipeline.shipping import SHIPPED_FILE, ship_models
+
+    dest = tmp_path / "shipped"
+    assert "shipped" in ship_models(trained_run, dest, command="anchordp3 experiment recipe tiny")
+    for name in MODELS:
+        assert (dest / name / "model.pt").stat().st_size <= (trained_run / "models" / name / "model.pt").stat().st_size
+        assert (dest / name / "manifest.json").is_file()
+    assert (dest / "run_config.yaml").is_file() and "recipe tiny" in (dest / SHIPPED_FILE).read_text()
+    ours = run_evaluation(trained_run, EvalOptions(seeds="1500", out=tmp_path / "a", workers=1, max_decisions=2), say=QUIET)
+    theirs = run_evaluation(None, EvalOptions(models=str(dest), seeds="1500", out=tmp_path / "b", workers=1, max_decisions=2), say=QUIET)
+    drop = lambda rs: [{k: v for k, v in r.items() if k != "seconds"} for r in rs]  # noqa: E731
+    assert drop(ours) == drop(theirs)
+    with pytest.raises(FileNotFoundError, match="no trained"):
+        ship_models(tmp_path / "empty-run", tmp_path / "x")

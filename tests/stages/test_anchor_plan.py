@@ -16,6 +16,7 @@ from anchordp3.stages.anchors import (
     load_plan,
     match_anchors,
     plan_frames,
+    reached,
     table_bytes,
 )
 from anchordp3.stages.rollout import load_episode
@@ -63,9 +64,12 @@ def test_anchor_labels_are_measured_states_with_commanded_grippers(staged):
     assert closed.any() and (lab[closed][:, [L.gripper("left"), L.gripper("right")]].min(axis=1) == 0).all()
 
 
-def test_plan_draws_frames_inside_each_interval_labelled_with_the_next_eight_anchors(staged):
+REPORT_PLAN = dict(rest_frames=False, relabel_reached=False)  # the report's frames and labels
+
+
+def test_report_plan_draws_frames_inside_each_interval_labelled_with_the_next_eight_anchors(staged):
     e, arr = _episode(staged, "stack_blocks_three")
-    cfg = AnchorsConfig(dagger={"fraction": 0.0})
+    cfg = AnchorsConfig(dagger={"fraction": 0.0}, **REPORT_PLAN)
     anchors = episode_anchors(e.record, arr, cfg)
     table = plan_frames(e.record.task, e.record.seed, anchors, cfg)
     t = table.column("t").to_numpy()
@@ -89,9 +93,46 @@ def test_plan_is_deterministic_and_depends_on_its_seed(staged):
     assert other != plan_frames("place_mouse", 0, a, cfg).column("t").to_pylist()
 
 
+def test_rest_frames_observe_each_interval_start_labelled_with_the_anchor_after_it(staged):
+    e, arr = _episode(staged, "place_mouse")
+    cfg = AnchorsConfig(dagger={"fraction": 0.0})
+    anchors = episode_anchors(e.record, arr, cfg)
+    rows = plan_frames(e.record.task, e.record.seed, anchors, cfg, arr["states"]).to_pylist()
+    rest = [r for r in rows if r["kind"] == "rest"]
+    starts = np.concatenate([[0], anchors.t[:-1]])
+    assert [r["t"] for r in rest] == starts.tolist()  # one per interval, at the previous anchor (home first)
+    assert [r["next_anchor"] for r in rest] == list(range(len(anchors.t)))
+    assert len(rows) == 3 * len(anchors.t)  # and the report's 2 random frames after each start
+
+
+def test_frames_that_already_reached_their_anchor_are_labelled_with_the_anchors_after_it(staged):
+    e, arr = _episode(staged, "place_mouse")
+    states, anchors_cfg = arr["states"], AnchorsConfig(dagger={"fraction": 0.0}, frames_per_interval=40)
+    anchors = episode_anchors(e.record, arr, anchors_cfg)
+    report = plan_frames("place_mouse", 0, anchors, AnchorsConfig(dagger={"fraction": 0.0}, frames_per_interval=40, **REPORT_PLAN))
+    ours = plan_frames("place_mouse", 0, anchors, anchors_cfg, states)
+    measured = states[anchors.t]
+
+    def at_first_label(rows):  # frames whose state already is their first label anchor
+        return sum(reached(states[r["t"]], measured[r["next_anchor"]], 0.01) and r["next_anchor"] < len(anchors.t) - 1 for r in rows)
+
+    assert at_first_label(report.to_pylist()) > 0  # the report's labels say "go where you are" near each anchor
+    assert at_first_label(ours.to_pylist()) == 0
+    shifted = [r for r in ours.to_pylist() if r["kind"] == "expert" and not starts_interval(r, anchors)]
+    assert any(r["next_anchor"] > interval_of(r["t"], anchors) for r in shifted)
+
+
+def starts_interval(row, anchors) -> bool:
+    return row["t"] == 0 or row["t"] in anchors.t.tolist()
+
+
+def interval_of(t: int, anchors) -> int:
+    return int(np.searchsorted(anchors.t, t, side="right"))
+
+
 def test_dagger_frames_follow_their_expert_frame_with_the_same_labels(staged):
     e, arr = _episode(staged, "stack_blocks_three")
-    cfg = AnchorsConfig(dagger={"fraction": 1.0, "wrong_affordance_prob": 0.5})
+    cfg = AnchorsConfig(dagger={"fraction": 1.0, "wrong_affordance_prob": 0.5}, **REPORT_PLAN)
     table = plan_frames("stack_blocks_three", 0, episode_anchors(e.record, arr, cfg), cfg).to_pylist()
     assert [r["kind"] for r in table] == ["expert", "dagger"] * (len(table) // 2)
     for ex, dg in zip(table[::2], table[1::2]):

@@ -1,0 +1,34 @@
+"""Wall time per phase of a long, resumable piece of work (an experiment arm's data, training,
+evaluation), summed over the invocations that built it and kept in a JSON file, so a resumed run
+reports what each phase cost in all."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+from anchordp3.stages.files import atomic_write_bytes
+
+T = TypeVar("T")
+
+
+class PhaseClock:
+    """``seconds[group][phase]``, loaded from ``path`` when it exists and saved after every phase."""
+
+    def __init__(self, path: Path, groups: tuple[str, ...], say: Callable[[str], None] = print):
+        self.path, self.say = Path(path), say
+        self.seconds: dict[str, dict[str, float]] = json.loads(self.path.read_text()) if self.path.is_file() else {}
+        for g in groups:
+            self.seconds.setdefault(g, {})
+
+    def timed(self, group: str, phase: str, fn: Callable[[], T]) -> T:
+        """Run ``fn``; its wall time adds to what earlier invocations spent on ``group``/``phase``."""
+        self.say(f"{group}: {phase}")
+        t0 = time.perf_counter()
+        result = fn()
+        self.seconds.setdefault(group, {})[phase] = self.seconds[group].get(phase, 0.0) + time.perf_counter() - t0
+        atomic_write_bytes(self.path, json.dumps(self.seconds, indent=1).encode())
+        return result

@@ -1,0 +1,101 @@
+"""``anchordp3 experiment recipe``: the best known way to a working policy, in one resumable
+command: the data run, the three models, closed-loop evaluation on unseen seeds (held-out
+instruction phrasings) and again on training seeds.
+
+Output under the recipe folder: ``run/`` (an ordinary run directory: ``status``, ``inspect``,
+``show``, ``eval`` work on it), ``eval/`` (unseen seeds) and ``eval-train/`` (training seeds), each
+with its table, chart, frame strips and report; ``phases.json`` (wall seconds per phase, summed
+over invocations), ``results.json`` and ``report.md``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+from anchordp3.pipeline.evaluation import EvalOptions, run_evaluation, summarize, wilson_interval
+from anchordp3.pipeline.phases import PhaseClock
+from anchordp3.pipeline.runner import RunOptions, run_pipeline
+from anchordp3.pipeline.training import MODELS, model_status, train_models
+from anchordp3.schemas.recipe import RecipeConfig
+from anchordp3.stages.files import atomic_write_bytes
+
+GROUP = "recipe"
+PHASES_FILE = "phases.json"
+
+
+def run_recipe(out: Path, cfg: RecipeConfig, say: Callable[[str], None] = print, address: str | None = None) -> dict:
+    """Run (or resume) the recipe into ``out``; returns the results written to ``results.json``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    run = out / "run"
+    clock = PhaseClock(out / PHASES_FILE, (GROUP,), say)
+    clock.timed(GROUP, "data", lambda: run_pipeline(cfg.run, run, RunOptions(address=address), say=say))
+    clock.timed(GROUP, "train", lambda: train_models(run, MODELS, cfg.training, say=say))
+    e = cfg.eval
+    base = dict(workers=e.workers, max_decisions=e.max_decisions, through=e.through, address=address)
+    unseen = clock.timed(GROUP, "eval", lambda: run_evaluation(run, EvalOptions(episodes=e.episodes, out=out / "eval", **base), cfg.run, say=say))
+    seen: list[dict] = []
+    if e.train_episodes:
+        seeds = ",".join(str(s) for s in cfg.run.seed_list[:e.train_episodes])
+        seen = clock.timed(GROUP, "eval-train", lambda: run_evaluation(
+            run, EvalOptions(seeds=seeds, out=out / "eval-train", strips=0, **base), cfg.run, say=say))
+    results = recipe_results(out, cfg, unseen, seen, clock.seconds[GROUP])
+    atomic_write_bytes(out / "results.json", json.dumps(results, indent=1).encode())
+    atomic_write_bytes(out / "report.md", recipe_report(results).encode())
+    return results
+
+
+def recipe_results(out: Path, cfg: RecipeConfig, unseen: list[dict], seen: list[dict], seconds: dict[str, float]) -> dict:
+    """What the recipe made and how well it does: data size, each model's steps, training time
+    and final validation metrics, success per task on unseen and on training seeds, wall times."""
+    from anchordp3.dataset.reader import open_dataset
+    from anchordp3.pipeline.work import stage_dir
+
+    data = open_dataset(stage_dir(out / "run", "write"))
+    models = {}
+    for name in MODELS:
+        rec = model_status(out / "run", name).record
+        info = rec.info if rec else {}
+        models[name] = {"steps": info.get("steps"), "train_seconds": info.get("train_seconds"), "metrics": info.get("metrics", {})}
+    results = {"tasks": cfg.run.tasks, "seeds": cfg.run.seeds, "preset": cfg.run.preset,
+               "episodes": len(data.episodes()), "samples": len(data), "through": cfg.eval.through, "models": models,
+               "unseen": summarize(unseen), "train_seeds": summarize(seen) if seen else [], "seconds": seconds}
+    data.close()
+    return results
+
+
+def _rate_cell(row: dict | None) -> str:
+    if row is None:
+        return "-"
+    return f"{row['successes']}/{row['episodes']} = {row['rate']:.0%} [{row['ci_low']:.2f}, {row['ci_high']:.2f}]"
+
+
+def recipe_report(results: dict) -> str:
+    """The markdown report of ``results``."""
+    pol = results["models"]["policy"]["metrics"]
+    seen = {r["task"]: r for r in results["train_seeds"]}
+    lines = ["# The recipe: data, training, closed-loop evaluation", "",
+             f"{results['episodes']} kept episodes ({results['samples']} samples) of {', '.join(results['tasks'])} on seeds "
+             f"{results['seeds']}, preset `{results['preset']}`; anchors carried out through their {results['through']}.", "",
+             "| task | unseen seeds (95 % CI) | training seeds | failures (unseen) | first anchor cm | rad/joint |",
+             "|---|---|---|---|---|---|"]
+    for r in results["unseen"]:
+        fails = ", ".join(f"{k} {v}" for k, v in sorted(r["failures"].items())) or "-"
+        lines.append(f"| {r['task']} | {_rate_cell(r)} | {_rate_cell(seen.get(r['task']))} | {fails} | "
+                     f"{pol.get('first_cm/' + r['task'], float('nan')):.2f} | {pol.get('first_rad/' + r['task'], float('nan')):.4f} |")
+    k = sum(r["successes"] for r in results["unseen"])
+    n = sum(r["episodes"] for r in results["unseen"])
+    lo, hi = wilson_interval(k, n)
+    lines += ["", f"Overall on unseen seeds: {k}/{n} = {k / max(1, n):.1%} (95 % CI [{lo:.2f}, {hi:.2f}]).", "",
+              "| model | steps | train s | final validation |", "|---|---|---|---|"]
+    for name, m in results["models"].items():
+        metrics = ", ".join(f"{k} {v:.4g}" for k, v in m["metrics"].items() if "/" not in k)
+        lines.append(f"| {name} | {m['steps']} | {m['train_seconds']} | {metrics} |")
+    lines += ["", "Wall time per phase (seconds, summed over invocations): "
+              + ", ".join(f"{k} {v:.0f}" for k, v in results["seconds"].items()) + ".", "",
+              "![success on unseen seeds](eval/success.png)", "",
+              "Reports: [unseen seeds](eval/report.md), [training seeds](eval-train/report.md); "
+              "training curves in `run/models/*/loss.png`.", ""]
+    return "\n".join(lines)

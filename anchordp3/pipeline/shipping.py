@@ -1,0 +1,71 @@
+"""Ship a run's trained models as a self-contained models folder, the form ``anchordp3 eval
+--models DIR`` (and ``--models pretrained``, the package's own) loads.
+
+The folder holds, per model, ``model.pt`` (the policy with its EMA weights only, the classifier
+with only the tensors that differ from the encoder its package ships), ``manifest.json`` and
+``training.yaml``; beside them ``run_config.yaml`` (the data config the models were trained on:
+world, features and plan of the evaluation) and ``SHIPPED.md`` (where they came from, with the
+command that made them and their sizes). Written to a temporary folder and renamed, so a
+half-shipped folder never replaces a good one.
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+from pathlib import Path
+
+import torch
+
+from anchordp3.pipeline.evaluation import PRETRAINED_DIR, RUN_CONFIG_FILE
+from anchordp3.pipeline.training import MODELS, TRAINING_FILE, model_dir, trained_model
+from anchordp3.stages.files import atomic_write_bytes
+from anchordp3.stages.training_loop import load_checkpoint
+
+SHIPPED_FILE = "SHIPPED.md"
+
+
+def slim_checkpoint(name: str, path: Path) -> bytes:
+    """``model.pt`` bytes of model ``name`` without what evaluation never reads: the policy's
+    raw (non-EMA) weights are the EMA ones."""
+    ckpt = load_checkpoint(path)
+    if name == "policy":
+        ckpt["state_dict"] = ckpt["ema_state_dict"]  # the same tensors: stored once
+    buf = io.BytesIO()
+    torch.save(ckpt, buf)
+    return buf.getvalue()
+
+
+def ship_models(run_dir: Path, dest: Path | None = None, command: str = "") -> str:
+    """Copy the run's three trained models into ``dest`` (default: the package's ``pretrained/``);
+    returns a one-line summary. Raises FileNotFoundError naming a model that is not trained."""
+    run_dir, dest = Path(run_dir), Path(dest) if dest is not None else PRETRAINED_DIR
+    tmp = dest.with_name(f".{dest.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    sizes = {}
+    for name in MODELS:
+        found = trained_model(run_dir, name)
+        if found is None:
+            raise FileNotFoundError(f"{model_dir(run_dir, name)}: no trained {name}; run `anchordp3 train all --run-dir {run_dir}`")
+        blob = slim_checkpoint(name, found[0])
+        atomic_write_bytes(tmp / name / "model.pt", blob)
+        for extra in ("manifest.json", TRAINING_FILE):
+            src = model_dir(run_dir, name) / extra
+            if src.is_file():
+                atomic_write_bytes(tmp / name / extra, src.read_bytes())
+        sizes[name] = len(blob)
+    atomic_write_bytes(tmp / RUN_CONFIG_FILE, (run_dir / "config.yaml").read_bytes())
+    total = sum(sizes.values())
+    lines = ["# Shipped models", "", f"From the run `{run_dir.name}`" + (f", made by `{command}`." if command else "."), "",
+             "| model | model.pt MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.2f} |" for k, v in sizes.items()] + \
+            ["", f"In all {total / 1e6:.2f} MB. `run_config.yaml` is the data config they were trained on.", ""]
+    atomic_write_bytes(tmp / SHIPPED_FILE, "\n".join(lines).encode())
+    if dest.exists():
+        old = dest.with_name(f".{dest.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        dest.rename(old)
+        tmp.rename(dest)
+        shutil.rmtree(old)
+    else:
+        tmp.rename(dest)
+    return f"shipped {', '.join(MODELS)} ({total / 1e6:.1f} MB) from {run_dir} to {dest}"
