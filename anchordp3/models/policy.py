@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -57,6 +58,7 @@ class AnchorDiffusionPolicy(nn.Module):
         self.point_normalizer = MinMaxNormalizer(self.point_channels)
         self.state_normalizer = MinMaxNormalizer(config.action_dim)
         self.anchor_normalizer = MinMaxNormalizer(config.action_dim)
+        self.delta_normalizer = MinMaxNormalizer(config.horizon * config.action_dim)  # relative targets, per slot
         self.noise_scheduler = make_scheduler(config.scheduler)
 
     # ------------------------------------------------------------------------------ setup
@@ -75,6 +77,12 @@ class AnchorDiffusionPolicy(nn.Module):
                 raise KeyError(f"stats: missing {key!r} (need 'state' and 'anchors', optional 'points')")
             fitted = MinMaxNormalizer.from_stats(stats[key])
             norm.set_limits(fitted.min, fitted.max, self.config.normalizer_min_range)
+        if self.config.target == "relative":
+            if "delta" not in stats:
+                raise KeyError("stats: missing 'delta' (min/max of anchors minus state, (H, D)), needed by relative targets")
+            lo = torch.as_tensor(np.asarray(stats["delta"]["min"], dtype=np.float64)).reshape(-1)
+            hi = torch.as_tensor(np.asarray(stats["delta"]["max"], dtype=np.float64)).reshape(-1)
+            self.delta_normalizer.set_limits(lo, hi, self.config.normalizer_min_range)
         if "points" in stats:
             fitted = MinMaxNormalizer.from_stats(stats["points"])
             lo, hi = fitted.min, fitted.max
@@ -98,7 +106,7 @@ class AnchorDiffusionPolicy(nn.Module):
         seeded run is reproducible across devices. Runs under autocast on CUDA."""
         anchors = torch.as_tensor(batch["anchors"], device=self.device, dtype=torch.float32)
         self._check_anchors(anchors)
-        x0 = self.anchor_normalizer(anchors)
+        x0 = self.to_target(anchors, torch.as_tensor(batch["state"], device=self.device, dtype=torch.float32))
         noise = torch.randn(x0.shape, generator=generator).to(self.device)
         steps = torch.randint(0, self.noise_scheduler.config.num_train_timesteps, (x0.shape[0],), generator=generator).to(self.device)
         noisy = self.noise_scheduler.add_noise(x0, noise, steps)
@@ -126,7 +134,21 @@ class AnchorDiffusionPolicy(nn.Module):
             with autocast(self.device, self.mixed_precision):
                 out = self.unet(x, t, cond)
             x = scheduler.step(out.float(), t, x).prev_sample
-        return self.anchor_normalizer.unnormalize(x)
+        return self.from_target(x, torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32))
+
+    def to_target(self, anchors: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Anchors ``(B, H, D)`` in data units -> the normalised diffusion target ``(B, H, D)``:
+        the anchors (``absolute``) or the anchors minus ``state (B, D)`` per horizon slot (``relative``)."""
+        if self.config.target == "absolute":
+            return self.anchor_normalizer(anchors)
+        delta = (anchors - state[:, None, :]).reshape(len(anchors), -1)
+        return self.delta_normalizer(delta).reshape(anchors.shape)
+
+    def from_target(self, x: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Inverse of ``to_target``: ``x (B, H, D)`` normalised -> anchors in data units."""
+        if self.config.target == "absolute":
+            return self.anchor_normalizer.unnormalize(x)
+        return self.delta_normalizer.unnormalize(x.reshape(len(x), -1)).reshape(x.shape) + state[:, None, :]
 
     # --------------------------------------------------------------------------- helpers
     def _observation(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -1,7 +1,9 @@
 """``anchordp3 demo``: the whole system on the embedded tiny default, well under half an hour on
 two CPU cores: the data stages (rollout → anchors → render → features → write) on
 ``configs/demo.yaml``, a picture of one rendered frame, the three models trained with
-``configs/demo_training.yaml``, then closed-loop evaluation ending with the success table.
+``configs/demo_training.yaml``, then closed-loop evaluation ending with the success table, and
+beside it the shipped models (``--models pretrained``, trained by ``configs/recipe.yaml``) on
+unseen seeds of their tasks, so a newcomer sees a policy do the tasks.
 Re-running resumes wherever it stopped.
 """
 
@@ -11,7 +13,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from anchordp3.pipeline.evaluation import EVAL_DIR, EvalOptions, evaluation_summary, run_evaluation
+from anchordp3.pipeline.evaluation import (
+    EVAL_DIR,
+    PRETRAINED,
+    PRETRAINED_DIR,
+    EvalOptions,
+    evaluation_summary,
+    run_evaluation,
+)
 from anchordp3.pipeline.report import data_summary
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.show import show_frame
@@ -28,7 +37,9 @@ DEMO_TRAINING = CONFIGS / "demo_training.yaml"
 class DemoOptions:
     """episodes: evaluation episodes per task; max_decisions: cap on policy calls per evaluation
     episode (keeps the demo's length bounded); train/evaluate: stop earlier when False;
-    training: the training settings (None: the embedded ``configs/demo_training.yaml``)."""
+    training: the training settings (None: the embedded ``configs/demo_training.yaml``);
+    pretrained_episodes: unseen seeds per task on which the shipped models are evaluated after the
+    demo's own (0: skip)."""
 
     episodes: int = 1
     max_decisions: int | None = 40
@@ -37,6 +48,15 @@ class DemoOptions:
     evaluate: bool = True
     address: str | None = None
     training: TrainingConfig | None = None
+    pretrained_episodes: int = 2
+
+
+PRETRAINED_EVAL_DIR = "eval-pretrained"
+
+
+def shipped_models_present() -> bool:
+    """Whether the package ships trained models (``anchordp3/pretrained/``)."""
+    return all((PRETRAINED_DIR / m / "model.pt").is_file() for m in MODELS)
 
 
 def demo_config(seeds: str | None = None) -> RunConfig:
@@ -67,5 +87,11 @@ def run_demo(run_dir: Path, cfg: RunConfig, say: Callable[[str], None] = print, 
     say("\n" + evaluation_summary(records))
     report = run_dir / EVAL_DIR / "report.md"
     say(f"\nReport: {report} | chart: {run_dir / EVAL_DIR / 'success.png'} | training curves: {run_dir / 'models'}/*/loss.png")
+    if opts.pretrained_episodes and shipped_models_present():
+        say("\n== and the shipped policy (`--models pretrained`, made by configs/recipe.yaml) on the same kind of unseen seeds")
+        shipped = EvalOptions(models=PRETRAINED, episodes=opts.pretrained_episodes, workers=opts.workers, address=opts.address,
+                              max_decisions=opts.max_decisions, out=run_dir / PRETRAINED_EVAL_DIR)
+        say("\n" + evaluation_summary(run_evaluation(None, shipped, say=say)))
+        say(f"Report: {run_dir / PRETRAINED_EVAL_DIR / 'report.md'}")
     say(f"Inspect the run: anchordp3 status {run_dir} | anchordp3 inspect {run_dir} render | anchordp3 show {run_dir} --frame 3")
     return report

@@ -185,13 +185,25 @@ def protocol_digest() -> str:
     return h.hexdigest()[:16]
 
 
-def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprint:
-    upstream = {"protocol": protocol_digest()}
+def check_models(models_dir: Path) -> None:
+    """Every model file of ``models_dir`` is a readable checkpoint of its kind: bad input gets a
+    one-line error naming the file here, in the driver, not a traceback from an actor."""
+    from anchordp3.stages.training_loop import load_checkpoint
+
     for name in MODEL_NAMES:
         path = Path(models_dir) / name / "model.pt"
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no trained {name}; run `anchordp3 train all --run-dir RUN` first")
-        upstream[name] = file_sha256(path)[:16]
+        kind = load_checkpoint(path).get("kind")
+        if kind != name:
+            raise ValueError(f"{path}: not a {name} checkpoint (kind {kind!r})")
+
+
+def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprint:
+    upstream = {"protocol": protocol_digest()}
+    check_models(models_dir)
+    for name in MODEL_NAMES:
+        upstream[name] = file_sha256(Path(models_dir) / name / "model.pt")[:16]
     part = {"world": cfg.world().model_dump(mode="json"), "features": cfg.features.model_dump(mode="json"),
             "max_decisions": opts.max_decisions, "through": opts.through, "plan": cfg.anchors.plan, "dense": cfg.anchors.dense.model_dump(mode="json")}
     return Fingerprint(code_version=anchordp3.__version__, config_hash=config_hash(part), upstream=upstream)

@@ -2,7 +2,8 @@
 --models DIR`` (and ``--models pretrained``, the package's own) loads.
 
 The folder holds, per model, ``model.pt`` (the policy with its EMA weights only, the classifier
-with only the tensors that differ from the encoder its package ships), ``manifest.json`` and
+with only the tensors that differ from the encoder its package ships, large weights in float16),
+``manifest.json`` and
 ``training.yaml``; beside them ``run_config.yaml`` (the data config the models were trained on:
 world, features and plan of the evaluation) and ``SHIPPED.md`` (where they came from, with the
 command that made them and their sizes). Written to a temporary folder and renamed, so a
@@ -25,10 +26,23 @@ from anchordp3.stages.training_loop import load_checkpoint
 SHIPPED_FILE = "SHIPPED.md"
 
 
+HALF_MIN_NUMEL = 1024  # float tensors at least this large are stored in float16 when shipping
+
+
+def half_weights(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """``state`` with every large float32 tensor (weights, not normaliser limits) in float16.
+    ``load_state_dict`` copies them back into the float32 parameters: about 3 decimal digits per
+    weight, half the bytes."""
+    return {k: v.half() if v.dtype == torch.float32 and v.numel() >= HALF_MIN_NUMEL else v for k, v in state.items()}
+
+
 def slim_checkpoint(name: str, path: Path) -> bytes:
-    """``model.pt`` bytes of model ``name`` without what evaluation never reads: the policy's
-    raw (non-EMA) weights are the EMA ones."""
+    """``model.pt`` bytes of model ``name`` without what evaluation never reads: the policy's raw
+    (non-EMA) weights are its EMA ones, and large weights are stored in float16."""
     ckpt = load_checkpoint(path)
+    for key in ("state_dict", "ema_state_dict"):
+        if key in ckpt:
+            ckpt[key] = half_weights(ckpt[key])
     if name == "policy":
         ckpt["state_dict"] = ckpt["ema_state_dict"]  # the same tensors: stored once
     buf = io.BytesIO()

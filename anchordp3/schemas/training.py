@@ -236,6 +236,11 @@ class PolicyConfig(_Config):
     state_encoder: StateEncoderConfig = Field(default_factory=StateEncoderConfig, description="The state MLP.")
     unet: UNetConfig = Field(default_factory=UNetConfig, description="The shared action expert.")
     scheduler: DiffusionSchedulerConfig = Field(default_factory=DiffusionSchedulerConfig, description="Diffusion noise schedule.")
+    target: Literal["absolute", "relative"] = Field(
+        default="relative",
+        description="What the U-Net denoises: the anchors themselves ('absolute', the report), or each anchor minus the "
+                    "current state ('relative'), so a move the state alone decides (down to the grasp, close, lift) is a "
+                    "near-constant offset. Relative targets are normalised per horizon slot.")
     normalizer_min_range: float = Field(
         default=0.05, ge=0,
         description="State and anchor dimensions spanning less than this (rad, m, or unitless) are normalised as if they "
@@ -266,6 +271,10 @@ class PolicyTrainingConfig(_Config):
                     "required), the simulator label ('ground_truth'), or 'auto': the segmenter when the run has a trained one, else the label.",
     )
     val_predict_samples: int = Field(default=64, ge=0, description="Validation samples (evenly spread over the split) denoised with DDIM (EMA weights) to measure the anchor error; 0: skip.")
+    augment_translation: tuple[float, float, float] = Field(
+        default=(0.0, 0.0, 0.0),
+        description="Move each training sample's whole scene (cloud, end-effector positions of state and labels; joints "
+                    "unchanged) by a translation uniform in +-this per axis, metres (0: no augmentation, the report).")
     val_decision_samples: int = Field(default=256, ge=0, description="Validation decision states (rest frames, evenly spread) whose first predicted anchor is scored in cm at the gripper and rad per joint; 0: skip.")
 
 

@@ -27,6 +27,7 @@ import torch
 from anchordp3.dataset.reader import ShardedDataset
 from anchordp3.dataset.torch_data import SplitDataset, collate_samples
 from anchordp3.models.device import needs_grad_scaler, seed_everything
+from anchordp3.models.augment import random_translation, translate_scene
 from anchordp3.models.ema import ExponentialMovingAverage
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
@@ -78,6 +79,21 @@ def critical_probabilities(data: ShardedDataset, segmenter_path: Path, device: t
     return out
 
 
+def delta_limits(data: ShardedDataset, batch_size: int = 256) -> dict[str, list]:
+    """``{"min", "max"}`` of ``anchors - state`` per horizon slot, ``(H, D)`` nested lists, over
+    every sample of both splits (as the dataset's own statistics are)."""
+    ds = SplitDataset(data, None, keys=("state", "anchors"))
+    lo = hi = None
+    for batch in eval_batches(ds, batch_size):
+        d = (batch["anchors"] - batch["state"][:, None, :]).double()
+        blo, bhi = d.min(dim=0).values, d.max(dim=0).values
+        lo = blo if lo is None else torch.minimum(lo, blo)
+        hi = bhi if hi is None else torch.maximum(hi, bhi)
+    if lo is None:
+        raise ValueError("dataset: no samples to fit the relative-target normalizer on")
+    return {"min": lo.tolist(), "max": hi.tolist()}
+
+
 class PolicyJob(TrainingJob):
     """The policy's training on one dataset (see ``TrainingJob``)."""
 
@@ -94,6 +110,7 @@ class PolicyJob(TrainingJob):
         if int(self.task_lut.max()) >= self.cfg.model.num_tasks:
             raise ValueError(f"policy.model.num_tasks: {self.cfg.model.num_tasks} encoders, but the dataset's tasks "
                              f"{data.tasks} need ids up to {int(self.task_lut.max())}")
+        self._delta_stats: dict[str, list] | None = None
         self.train_ds = SplitDataset(data, "train", keys=POLICY_KEYS)
         self.val_ds = SplitDataset(data, "validation", keys=POLICY_KEYS)
         optim = self.cfg.optim
@@ -109,9 +126,15 @@ class PolicyJob(TrainingJob):
         self.schedule = make_lr_schedule(self.optimizer, optim, self.total_steps)
         self.scaler = torch.amp.GradScaler("cuda") if needs_grad_scaler(device, config.mixed_precision) else None
 
-    def normalizer_stats(self) -> dict[str, dict[str, list[float]]]:
-        """Min/max of state, anchors and the 11 point channels from the dataset statistics."""
-        return {k: stats_limits(self.data.stats, k) for k in ("state", "anchors", "points")}
+    def normalizer_stats(self) -> dict[str, dict[str, list]]:
+        """Min/max of state, anchors and the 11 point channels from the dataset statistics, and for
+        relative targets of anchors minus state per horizon slot ``(H, D)`` over every sample."""
+        out = {k: stats_limits(self.data.stats, k) for k in ("state", "anchors", "points")}
+        if self.cfg.model.target == "relative":
+            if self._delta_stats is None:
+                self._delta_stats = delta_limits(self.data)
+            out["delta"] = self._delta_stats
+        return out
 
     def observation(self, batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """A loader batch -> the policy's batch on the device: ``points (B, N, 12)`` (features +
@@ -128,8 +151,19 @@ class PolicyJob(TrainingJob):
         return train_batches(self.train_ds, self.cfg.optim.batch_size, self.seed, start_step, self.loop.loader_workers,
                              pin_memory=self.device.type == "cuda")
 
+    def augmented(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """A training batch with the whole scene moved by a random translation per sample
+        (``augment_translation``; see ``models.augment``)."""
+        extent = self.cfg.augment_translation
+        if not any(extent):
+            return obs
+        delta = random_translation(len(obs["state"]), extent, self.generator).to(self.device)
+        layout = StateLayout((self.cfg.model.action_dim - 18) // 2 - 1)
+        points, state, anchors = translate_scene(obs["points"], obs["state"], obs["anchors"], delta, layout)
+        return {**obs, "points": points, "state": state, "anchors": anchors}
+
     def train_step(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
-        loss = self.model.compute_loss(self.observation(batch), generator=self.generator)
+        loss = self.model.compute_loss(self.augmented(self.observation(batch)), generator=self.generator)
         optimizer_step(loss, self.optimizer, self.schedule, self.scaler, self.params, self.cfg.optim.grad_clip_norm)
         decay = self.ema.step(self.model)
         return {"loss": float(loss.detach()), "lr": self.schedule.get_last_lr()[0], "ema_decay": decay}

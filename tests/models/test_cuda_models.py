@@ -22,7 +22,8 @@ def test_policy_trains_and_predicts_on_cuda_with_autocast() -> None:
         "task_id": torch.tensor([0, 1, 1, 7]),
     }
     policy.set_normalizers({"state": {"min": torch.zeros(32), "max": torch.ones(32)},
-                            "anchors": {"min": torch.zeros(32), "max": torch.ones(32)}})
+                            "anchors": {"min": torch.zeros(32), "max": torch.ones(32)},
+                            "delta": {"min": -torch.ones(8, 32), "max": torch.ones(8, 32)}})
     ema = ExponentialMovingAverage(policy)
     opt = torch.optim.AdamW(policy.parameters(), lr=1e-4)
     loss = policy.compute_loss(batch, generator=torch.Generator().manual_seed(0))

@@ -41,20 +41,34 @@ def samples(batch: int, n: int = 64, seed: int = 0, tasks: list[int] | None = No
 
 def stats_of(batch: dict[str, torch.Tensor]) -> dict[str, dict[str, torch.Tensor]]:
     pts = batch["points"][..., :11].reshape(-1, 11)
+    delta = batch["anchors"] - batch["state"][:, None, :]
     return {
         "state": {"min": batch["state"].min(0).values, "max": batch["state"].max(0).values},
         "anchors": {"min": batch["anchors"].amin(0), "max": batch["anchors"].amax(0)},  # (8, 32) per slot
         "points": {"min": pts.min(0).values, "max": pts.max(0).values},
+        "delta": {"min": delta.amin(0), "max": delta.amax(0)},  # (8, 32): anchors minus state
     }
 
 
-def make_policy(seed: int = 0) -> AnchorDiffusionPolicy:
+def make_policy(seed: int = 0, target: str = "relative") -> AnchorDiffusionPolicy:
     torch.manual_seed(seed)
-    return AnchorDiffusionPolicy(TINY)
+    return AnchorDiffusionPolicy(TINY.model_copy(update={"target": target}))
 
 
-def test_loss_falls_when_overfitting_a_handful_of_samples() -> None:
+def test_relative_targets_round_trip_and_make_a_fixed_offset_a_constant() -> None:
     policy = make_policy()
+    batch = samples(6)
+    offset = torch.linspace(-0.1, 0.1, 8 * 32).reshape(8, 32)
+    batch["anchors"] = batch["state"][:, None, :] + offset  # every sample: the same move from where it is
+    policy.set_normalizers(stats_of(batch))
+    x = policy.to_target(batch["anchors"], batch["state"])
+    assert torch.allclose(x, x[:1].expand_as(x), atol=1e-5)  # one target, wherever the robot is
+    torch.testing.assert_close(policy.from_target(x, batch["state"]), batch["anchors"], atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("target", ["absolute", "relative"])
+def test_loss_falls_when_overfitting_a_handful_of_samples(target) -> None:
+    policy = make_policy(target=target)
     batch = samples(8)
     policy.set_normalizers(stats_of(batch))
     opt = make_optimizer(policy.parameters(), OptimizerConfig(lr=2e-3, warmup_steps=10))

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from anchordp3.pipeline.demo import DemoOptions, demo_config, run_demo
+from anchordp3.pipeline.demo import PRETRAINED_EVAL_DIR, DemoOptions, demo_config, run_demo, shipped_models_present
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.training import TrainingConfig
 from tiny_models import tiny_data, tiny_training
@@ -18,11 +18,15 @@ def test_demo_runs_data_training_and_evaluation_and_prints_the_success_table(ray
     lines: list[str] = []
     cfg = RunConfig.model_validate(tiny_data("tiny-demo", ["place_bell"], "0-1"))
     training = TrainingConfig.model_validate(tiny_training(3, 3, 3, loop={"log_interval_s": 30.0, "cpu_threads": 1}, device="cpu"))
-    report = run_demo(tmp_path, cfg, say=lines.append, opts=DemoOptions(max_decisions=2, workers=1, training=training))
+    opts = DemoOptions(max_decisions=2, workers=1, training=training, pretrained_episodes=1)
+    report = run_demo(tmp_path, cfg, say=lines.append, opts=opts)
     assert report == tmp_path / "eval" / "report.md" and report.is_file()
     out = "\n".join(lines)
     assert (tmp_path / "frame.png").is_file() and (tmp_path / "models" / "policy" / "model.pt").is_file()
     rows = out.splitlines()
-    header = max(i for i, row in enumerate(rows) if "95% CI" in row)  # the success table comes last, then where to look
-    assert rows[header].startswith("task") and rows[header + 2].startswith("place_bell")
-    assert any(str(report) in row for row in rows[header:])
+    headers = [i for i, row in enumerate(rows) if "95% CI" in row]  # the demo's success table, then the shipped policy's
+    assert rows[headers[0]].startswith("task") and rows[headers[0] + 2].startswith("place_bell")
+    assert any(str(report) in row for row in rows[headers[0]:])
+    if shipped_models_present():
+        assert len(headers) == 2 and (tmp_path / PRETRAINED_EVAL_DIR / "report.md").is_file()
+        assert {rows[headers[1] + 2 + i].split()[0] for i in range(3)} == {"place_mouse", "place_stapler", "place_bell"}

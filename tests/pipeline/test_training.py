@@ -72,7 +72,7 @@ def test_train_all_writes_each_model_with_its_manifest(trained):
     run, results, lines = trained
     assert [(t.name, t.status) for t in results] == [(m, "trained") for m in MODELS]
     want = {"segmenter": {"loss", "iou", "precision", "recall"}, "classifier": {"loss", "accuracy"},
-            "policy": {"loss", "anchor_mse"}}
+            "policy": {"loss", "anchor_mse", "first_cm", "first_rad"}}
     dataset_sum = file_sha256(stage_dir(run, "write") / "dataset.json")
     for name in MODELS:
         d = model_dir(run, name)
@@ -81,7 +81,9 @@ def test_train_all_writes_each_model_with_its_manifest(trained):
         rec = m.items[name]
         assert rec.status == "done" and rec.output == "model.pt"
         assert rec.checksum == file_sha256(d / "model.pt")
-        assert set(rec.info["metrics"]) == want[name] and rec.info["steps"] == TRAIN[name]["optim"]["steps"]
+        per_task = {k for k in rec.info["metrics"] if "/" in k}  # first_cm/<task>, first_rad/<task>
+        assert set(rec.info["metrics"]) - per_task == want[name] and rec.info["steps"] == TRAIN[name]["optim"]["steps"]
+        assert all(k.split("/")[0] in ("first_cm", "first_rad") for k in per_task)
         assert rec.info["checkpoint"] == f"models/{name}/model.pt"
         assert m.fingerprint.upstream.get("dataset") == (None if name == "classifier" else dataset_sum)
         assert (d / "loss.png").read_bytes()[:4] == b"\x89PNG"

@@ -58,3 +58,23 @@ def test_carrying_out_the_experts_own_labels_completes_the_task(tmp_path, task, 
     assert rec.success
     res = oracle_episode(rec, load_episode(tmp_path, rec), cfg)
     assert res.success and res.steps <= rec.steps + 25 * res.decisions
+
+
+def test_executing_through_the_pose_puts_the_gripper_where_the_anchor_says_despite_a_shoulder_error(episode):
+    ep, arm = episode, "left"
+    qpos, xyz, rot = ep.layout.qpos(arm), ep.layout.ee_xyz(arm), ep.layout.ee_rot6(arm)
+    anchor = ep.robot.state().copy()
+    q = anchor[qpos].copy()
+    q[1] -= 0.15
+    q[2] += 0.2
+    pose = ep.robot.fk(arm, q)
+    anchor[qpos], anchor[xyz], anchor[rot] = q, pose[:3, 3], pose[:3, :2].reshape(-1)
+    wrong = anchor.copy()
+    wrong[qpos.start] += 0.02  # 0.02 rad at the shoulder, the end-effector pose still right
+    goal, fell_back = ep.pose_goal(wrong)
+    assert fell_back == []
+    by_pose = ep.robot.fk(arm, goal[qpos])[:3, 3]
+    by_joints = ep.robot.fk(arm, wrong[qpos])[:3, 3]
+    assert np.linalg.norm(by_pose - pose[:3, 3]) < 2e-3 < 5e-3 < np.linalg.norm(by_joints - pose[:3, 3])
+    with pytest.raises(ValueError, match="through"):
+        ep.execute(wrong, through="elbows")
