@@ -78,7 +78,8 @@ def recipe_report(results: dict) -> str:
     seen = {r["task"]: r for r in results["train_seeds"]}
     lines = ["# The recipe: data, training, closed-loop evaluation", "",
              f"{results['episodes']} kept episodes ({results['samples']} samples) of {', '.join(results['tasks'])} on seeds "
-             f"{results['seeds']}, preset `{results['preset']}`; anchors carried out through their {results['through']}.", "",
+             f"{results['seeds']}, preset `{results['preset']}`; anchors carried out through their "
+             f"{'end-effector poses (IK)' if results['through'] == 'pose' else 'joint angles'}.", "",
              "| task | unseen seeds (95 % CI) | training seeds | failures (unseen) | first anchor cm | rad/joint |",
              "|---|---|---|---|---|---|"]
     for r in results["unseen"]:
