@@ -40,6 +40,8 @@ def slim_checkpoint(name: str, path: Path) -> bytes:
     """``model.pt`` bytes of model ``name`` without what evaluation never reads: the policy's raw
     (non-EMA) weights are its EMA ones, and large weights are stored in float16."""
     ckpt = load_checkpoint(path)
+    if "weights_dir" in ckpt:  # checkpoints of older code recorded the resolved (machine) path
+        ckpt["weights_dir"] = ckpt.get("config", {}).get("weights_dir")
     for key in ("state_dict", "ema_state_dict"):
         if key in ckpt:
             ckpt[key] = half_weights(ckpt[key])

@@ -206,6 +206,7 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
     if not ep.stable:
         return record(False, 0, ep.step_limit, 0, "unstable")
     decisions = 0
+    joints = [i for a in ARMS for i in range(ep.layout.dim)[ep.layout.qpos(a)]]
     while True:
         if ep.success():
             return record(True, ep.steps, ep.step_limit, decisions, None)
@@ -222,7 +223,6 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
         except ValueError:
             return record(False, ep.steps, ep.step_limit, decisions, "no_points")
         act(ep, models.anchors(points, obs.state, predicted, s), cfg.anchors, through)
-        joints = [i for a in ARMS for i in range(ep.layout.dim)[ep.layout.qpos(a)]]
         moved = float(np.abs(ep.robot.state()[joints] - obs.state[joints]).max())
         trace.append(DecisionTrace(moved, tuple(float(g) for g in ep.gripper_commands()), ep.lift()))
         decisions += 1

@@ -105,7 +105,7 @@ class ClassifierJob(TrainingJob):
             "kind": KIND,
             "config": self.cfg.model.model_dump(mode="json"),
             "training": self.cfg.model_dump(mode="json"),
-            "weights_dir": str(self.model.weights_dir),
+            "weights_dir": self.cfg.model.weights_dir,  # as configured (None: the bundled MiniLM), never a machine path
             "state_dict": self.model.changed_state_dict(),
             "partial_state_dict": True,  # tensors equal to the pretrained encoder's load from weights_dir
             "tasks": list(TASK_NAMES),

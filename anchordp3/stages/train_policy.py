@@ -111,6 +111,7 @@ class PolicyJob(TrainingJob):
             raise ValueError(f"policy.model.num_tasks: {self.cfg.model.num_tasks} encoders, but the dataset's tasks "
                              f"{data.tasks} need ids up to {int(self.task_lut.max())}")
         self._delta_stats: dict[str, list] | None = None
+        self._decisions: list[int] | None = None
         self.train_ds = SplitDataset(data, "train", keys=POLICY_KEYS)
         self.val_ds = SplitDataset(data, "validation", keys=POLICY_KEYS)
         optim = self.cfg.optim
@@ -227,7 +228,12 @@ class PolicyJob(TrainingJob):
 
     def decision_indices(self) -> list[int]:
         """Positions in the validation split of its decision states (see ``first_anchor_errors``),
-        up to ``val_decision_samples``, evenly spaced."""
+        up to ``val_decision_samples``, evenly spaced; read once per job."""
+        if self._decisions is None:
+            self._decisions = self._find_decisions()
+        return self._decisions
+
+    def _find_decisions(self) -> list[int]:
         kinds = np.array([self.data.sample(int(i), ())["kind"] for i in self.val_ds.samples], dtype=np.int64)
         code = FRAME_KINDS.index("rest") if (kinds == FRAME_KINDS.index("rest")).any() else FRAME_KINDS.index("expert")
         pos = np.nonzero(kinds == code)[0]

@@ -13,7 +13,7 @@ def ray_session():
 
     started = not ray.is_initialized()
     if started:
-        ray.init(num_cpus=2, include_dashboard=False, object_store_memory=80 * 1024**2,
+        ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1", object_store_memory=80 * 1024**2,
                  logging_level="WARNING", log_to_driver=False)
     yield ray
     if started:
