@@ -373,6 +373,33 @@ def export_pretrained(
     typer.echo(ship_models(run_dir, dest, command))
 
 
+@export_app.command("lerobot")
+@cli_errors
+def export_lerobot_cmd(
+    run_dir: Path = typer.Argument(..., help="Run directory with a complete dataset (from `anchordp3 run`)."),
+    out: Path = typer.Argument(..., help="LeRobot dataset folder to create (must not exist)."),
+    images: bool = typer.Option(True, "--images/--no-images", help="Include the kept camera images (when the run kept them)."),
+) -> None:
+    """The run's dataset as a LeRobotDataset (v3.0 layout): one frame per keyframe, action = the
+    next anchor, the point cloud, and each camera's images when the run kept them."""
+    from anchordp3.pipeline.exports import export_lerobot
+
+    typer.echo(export_lerobot(run_dir, out, images=images).line())
+
+
+@export_app.command("dp3")
+@cli_errors
+def export_dp3_cmd(
+    run_dir: Path = typer.Argument(..., help="Run directory with a complete dataset (from `anchordp3 run`)."),
+    out: Path = typer.Argument(..., help="DP3 zarr folder to create, e.g. OUT.zarr (must not exist)."),
+) -> None:
+    """The run's dataset in DP3's zarr layout (format 2): data/point_cloud (T, N, 6), data/state,
+    data/action (the next anchor), meta/episode_ends."""
+    from anchordp3.pipeline.exports import export_dp3
+
+    typer.echo(export_dp3(run_dir, out).line())
+
+
 def main() -> None:  # pragma: no cover - console entry point
     app()
 

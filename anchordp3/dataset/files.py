@@ -5,6 +5,8 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 _BLOCK = 1 << 20
@@ -93,3 +95,33 @@ def remove_stale(final: Path) -> None:
             shutil.rmtree(p, ignore_errors=True)
         else:
             p.unlink(missing_ok=True)
+
+
+def refuse_existing(final: Path) -> Path:
+    """``final`` as a Path; ValueError naming it when something is already there."""
+    final = Path(final)
+    if final.exists() or final.is_symlink():
+        raise ValueError(f"{final}: already exists; remove it or choose another output path")
+    return final
+
+
+@contextmanager
+def new_folder(final: Path) -> Iterator[Path]:
+    """``with new_folder(OUT) as tmp:`` fill ``tmp``, a hidden sibling ``.<name>.tmp-<pid>``; when the
+    block ends without error it is made durable and renamed to ``OUT``, otherwise deleted, so ``OUT``
+    is either absent or complete. ValueError naming ``OUT`` when it already exists (never replaced)."""
+    final = refuse_existing(final)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale(final)
+    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    tmp.mkdir()
+    try:
+        yield tmp
+        fsync_tree(tmp)
+        if final.exists():  # appeared meanwhile: rename would replace an empty folder silently
+            raise ValueError(f"{final}: appeared while exporting; remove it or choose another output path")
+        os.rename(tmp, final)
+        fsync_dir(final.parent)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)

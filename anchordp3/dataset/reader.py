@@ -20,6 +20,7 @@ from pydantic import ValidationError
 from anchordp3.dataset.chunks import ArrayReader
 from anchordp3.dataset.index import INDEX_SCHEMA, read_table
 from anchordp3.schemas.dataset import (
+    ARRAYS,
     INDEX_FILE,
     INFO_FILE,
     SCHEMA_VERSION,
@@ -166,6 +167,17 @@ class ShardedDataset:
             kind=int(sh.meta["kind"][j]), seed=int(self._index["seed"][row]), index=int(i) % len(self),
             task=str(self._index["task"][row]), instruction=str(self._index["instruction"][row]),
         )
+        return out
+
+    def episode_arrays(self, entry: EpisodeEntry, keys: Iterable[str] = SAMPLE_ARRAYS) -> dict[str, np.ndarray]:
+        """The samples of one episode stacked in sample order: the arrays named in ``keys``
+        (``points (F, N, 11)``, ...) and ``timestep (F,) int64``, ``kind (F,) uint8``."""
+        keys = tuple(keys)
+        rows = [self.sample(i, keys) for i in range(entry.start, entry.stop)]
+        out = {k: np.stack([r[k] for r in rows]) if rows else np.zeros((0, *ARRAYS[k].shape(self.info.n_points)), ARRAYS[k].dtype)
+               for k in keys}
+        out["timestep"] = np.array([r["timestep"] for r in rows], dtype=np.int64)
+        out["kind"] = np.array([r["kind"] for r in rows], dtype=np.uint8)
         return out
 
     def __getitem__(self, i: int) -> dict:

@@ -1,7 +1,8 @@
 """The anchor diffusion policy: one observation frame -> the next H anchors (H x 32).
 
 Observation: ``points (B, N, 12)`` (11 features + critical probability), ``state (B, 32)``,
-``task_id (B,)``. The task's own point encoder and the state MLP give the FiLM condition of one
+``task_id (B,)``. With ``gripper_points`` every point also carries its offset from each end
+effector (``gripper_offsets``) before the per-point MLP. The task's own point encoder and the state MLP give the FiLM condition of one
 shared conditional 1-D U-Net, which denoises the ``(B, H, 32)`` anchor sequence with diffusers'
 ``DDIMScheduler`` (DP3's settings: 100 training steps, squaredcos_cap_v2, clip_sample,
 prediction_type ``sample``, 10 inference steps). Training loss: MSE over all H x 32 elements of the
@@ -22,6 +23,7 @@ from anchordp3.models.device import autocast
 from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
 from anchordp3.models.normalizer import MinMaxNormalizer
 from anchordp3.models.unet1d import ConditionalUnet1D
+from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
 
 
@@ -39,6 +41,15 @@ def make_scheduler(config: DiffusionSchedulerConfig):
     )
 
 
+GRIPPER_OFFSET_SCALE = 2.0  # offsets of up to +-0.5 m map to +-1
+
+
+def gripper_offsets(points: torch.Tensor, state: torch.Tensor, layout: StateLayout) -> torch.Tensor:
+    """Each point's offset from each arm's end effector: ``points (B, N, C)`` (xyz first, metres),
+    ``state (B, D)`` -> ``(B, N, 3 * arms)``, metres x ``GRIPPER_OFFSET_SCALE``, arms in ``ARMS`` order."""
+    return torch.cat([(points[..., :3] - state[:, None, layout.ee_xyz(arm)]) * GRIPPER_OFFSET_SCALE for arm in ARMS], dim=-1)
+
+
 class AnchorDiffusionPolicy(nn.Module):
     """Task-conditioned encoders + conditional U-Net diffusion over anchors.
 
@@ -52,7 +63,10 @@ class AnchorDiffusionPolicy(nn.Module):
         self.config = config = config or PolicyConfig()
         self.mixed_precision = mixed_precision
         self.point_channels = config.point_encoder.in_channels
-        self.point_encoder = TaskConditionedEncoder(config.num_tasks, config.point_encoder)
+        self.layout = StateLayout.of_length(config.action_dim)
+        extra = 3 * len(ARMS) if config.gripper_points else 0
+        encoder = config.point_encoder.model_copy(update={"in_channels": self.point_channels + extra})
+        self.point_encoder = TaskConditionedEncoder(config.num_tasks, encoder)
         self.state_encoder = StateEncoder(config.state_encoder)
         self.unet = ConditionalUnet1D(config.action_dim, config.cond_dim, config.unet)
         self.point_normalizer = MinMaxNormalizer(self.point_channels)
@@ -94,8 +108,11 @@ class AnchorDiffusionPolicy(nn.Module):
     def encode_observation(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """obs (data units) -> FiLM condition (B, point out_dim + state hidden)."""
         points, state, task_id = self._observation(obs)
+        normed = self.point_normalizer(points)
+        if self.config.gripper_points:
+            normed = torch.cat([normed, gripper_offsets(points, state, self.layout)], dim=-1)
         return torch.cat([
-            self.point_encoder(self.point_normalizer(points), task_id),
+            self.point_encoder(normed, task_id),
             self.state_encoder(self.state_normalizer(state)),
         ], dim=-1)
 

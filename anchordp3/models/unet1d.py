@@ -12,8 +12,10 @@ import math
 from itertools import pairwise
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from anchordp3.models.kernels import fast_kernels
 from anchordp3.schemas.training import UNetConfig
 
 
@@ -31,13 +33,33 @@ class SinusoidalStepEmbedding(nn.Module):
         return torch.cat([angles.sin(), angles.cos()], dim=-1)
 
 
+class SequenceConv1d(nn.Conv1d):
+    """``nn.Conv1d`` (same parameters, same checkpoints) that, for inference on the CPU, runs as one
+    matrix product over the unfolded sequence: on the U-Net's short sequences (T <= 8 at batch 1)
+    PyTorch's CPU convolution kernels cost ~10x more than the arithmetic. Training (gradients on)
+    and CUDA use the standard convolution, and so does ``kernels.reference_kernels()``.
+    x: (B, C_in, T) -> (B, C_out, T_out)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not fast_kernels() or torch.is_grad_enabled() or x.device.type != "cpu" or self.groups != 1 or self.dilation != (1,) or \
+                self.padding_mode != "zeros" or not isinstance(self.padding, tuple):
+            return super().forward(x)
+        (k,), (stride,), (pad,) = self.kernel_size, self.stride, self.padding
+        cols = F.pad(x, (pad, pad)).unfold(2, k, stride)  # (B, C_in, T_out, k)
+        b, _, t_out, _ = cols.shape
+        flat = cols.permute(0, 2, 1, 3).reshape(b * t_out, -1)  # (B * T_out, C_in * k)
+        weight = self.weight.reshape(self.out_channels, -1)
+        y = flat @ weight.t() if self.bias is None else torch.addmm(self.bias, flat, weight.t())
+        return y.reshape(b, t_out, self.out_channels).transpose(1, 2)
+
+
 class ConvNormMish(nn.Module):
     """Conv1d (same padding) -> GroupNorm -> Mish. x: (B, C_in, T) -> (B, C_out, T)."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int, n_groups: int) -> None:
         super().__init__()
         self.block = nn.Sequential(
-            nn.Conv1d(in_channels, out_channels, kernel_size, padding=kernel_size // 2),
+            SequenceConv1d(in_channels, out_channels, kernel_size, padding=kernel_size // 2),
             nn.GroupNorm(n_groups, out_channels),
             nn.Mish(),
         )
@@ -56,7 +78,7 @@ class FiLMResidualBlock(nn.Module):
         self.conv1 = ConvNormMish(in_channels, out_channels, kernel_size, n_groups)
         self.conv2 = ConvNormMish(out_channels, out_channels, kernel_size, n_groups)
         self.film = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, 2 * out_channels))
-        self.residual = nn.Conv1d(in_channels, out_channels, 1) if in_channels != out_channels else nn.Identity()
+        self.residual = SequenceConv1d(in_channels, out_channels, 1) if in_channels != out_channels else nn.Identity()
 
     def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         h = self.conv1(x)
@@ -86,7 +108,7 @@ class ConditionalUnet1D(nn.Module):
             self.down.append(nn.ModuleList([
                 FiLMResidualBlock(cin, cout, film_dim, k, g),
                 FiLMResidualBlock(cout, cout, film_dim, k, g),
-                nn.Identity() if last else nn.Conv1d(cout, cout, 3, stride=2, padding=1),
+                nn.Identity() if last else SequenceConv1d(cout, cout, 3, stride=2, padding=1),
             ]))
         mid = config.down_dims[-1]
         self.mid = nn.ModuleList([FiLMResidualBlock(mid, mid, film_dim, k, g), FiLMResidualBlock(mid, mid, film_dim, k, g)])
@@ -97,7 +119,7 @@ class ConditionalUnet1D(nn.Module):
                 FiLMResidualBlock(cout, cout, film_dim, k, g),
                 nn.ConvTranspose1d(cout, cout, 4, stride=2, padding=1),
             ]))
-        self.final = nn.Sequential(ConvNormMish(config.down_dims[0], config.down_dims[0], k, g), nn.Conv1d(config.down_dims[0], input_dim, 1))
+        self.final = nn.Sequential(ConvNormMish(config.down_dims[0], config.down_dims[0], k, g), SequenceConv1d(config.down_dims[0], input_dim, 1))
         self.downsamples = levels - 1
 
     def forward(self, sample: torch.Tensor, timestep: torch.Tensor | int, global_cond: torch.Tensor) -> torch.Tensor:

@@ -26,6 +26,13 @@ class StateLayout:
 
     dof: int = 6
 
+    @classmethod
+    def of_length(cls, dim: int) -> StateLayout:
+        """The layout whose vector is ``dim`` long (``dim = 2 * (dof + 1) + 18``)."""
+        if dim < 20 or dim % 2:
+            raise ValueError(f"state vectors of {dim} dims fit no two-arm layout (2 * (dof + 1) + 18)")
+        return cls(dim // 2 - 10)
+
     @property
     def dim(self) -> int:
         """Total length: ``2 * (dof + 1) + 18``."""

@@ -246,6 +246,11 @@ class PolicyConfig(_Config):
         description="State and anchor dimensions spanning less than this (rad, m, or unitless) are normalised as if they "
                     "spanned this much, so a nearly constant joint is not stretched thousands of times into noise "
                     "(0: DP3's plain min/max limits).")
+    gripper_points: bool = Field(
+        default=False,
+        description="Give every point, before pooling, its offset from each arm's end effector (6 more channels, "
+                    "metres x 2), so the encoder sees where the objects lie relative to the grippers; off: the point "
+                    "alone, as in the report.")
 
     @model_validator(mode="after")
     def _dims(self) -> PolicyConfig:

@@ -68,11 +68,7 @@ class Anchors:
 
 def layout_of(states: np.ndarray) -> StateLayout:
     """The state layout that fits vectors of ``states.shape[-1]`` dims."""
-    dof = (states.shape[-1] - 18) // 2 - 1
-    layout = StateLayout(dof)
-    if layout.dim != states.shape[-1]:
-        raise ValueError(f"state vectors of {states.shape[-1]} dims fit no two-arm layout")
-    return layout
+    return StateLayout.of_length(states.shape[-1])
 
 
 def anchor_states(states: np.ndarray, actions: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -159,7 +159,7 @@ class PolicyJob(TrainingJob):
         if not any(extent):
             return obs
         delta = random_translation(len(obs["state"]), extent, self.generator).to(self.device)
-        layout = StateLayout((self.cfg.model.action_dim - 18) // 2 - 1)
+        layout = StateLayout.of_length(self.cfg.model.action_dim)
         points, state, anchors = translate_scene(obs["points"], obs["state"], obs["anchors"], delta, layout)
         return {**obs, "points": points, "state": state, "anchors": anchors}
 
@@ -206,7 +206,7 @@ class PolicyJob(TrainingJob):
         picks = self.decision_indices()
         if not picks:
             return {}
-        layout = StateLayout((self.cfg.model.action_dim - 18) // 2 - 1)
+        layout = StateLayout.of_length(self.cfg.model.action_dim)
         xyz = [np.arange(layout.dim)[layout.ee_xyz(a)] for a in ARMS]
         joints = np.concatenate([np.arange(layout.dim)[layout.qpos(a)] for a in ARMS])
         cm, rad, task = [], [], []

@@ -55,3 +55,31 @@ def build(features_dir: Path, out: Path, cfg: WriteConfig, failed=(), order=None
     ks = order if order is not None else range(len(plan))
     records = [write_shard(k, plan[k], features_dir, out, cfg, tasks=tasks, failed=failed) for k in ks]
     return finalize(out, records, cfg), records, plan
+
+
+VIEWS = ("head", "front")
+
+
+def fake_frames(task: str, seed: int, h: int = 12, w: int = 16) -> dict[str, np.ndarray]:
+    """The rendered-frames file of an episode of ``fake_features`` (rgb of two views, steps, kinds)."""
+    f = fake_features(task, seed)
+    rng = np.random.default_rng([seed, len(task), 7])
+    rgb = rng.integers(0, 256, size=(len(f["t"]), len(VIEWS), h, w, 3), dtype=np.uint8)
+    return {"rgb": rgb, "t": f["t"], "kind": f["kind"], "views": np.array(VIEWS)}
+
+
+def make_run(root: Path, cfg: WriteConfig, images: bool = True, failed=(("place_bell", 5),)) -> Path:
+    """A run directory ``root/run`` as the data stages leave it, without simulating: ``config.yaml``,
+    ``dataset/`` built from fake features, and ``render/frames/...`` (with RGB when ``images``,
+    as with ``render.keep_frames: true``; pruned to steps and kinds otherwise)."""
+    import yaml
+
+    from anchordp3.stages.render import frames_file
+
+    run = Path(root) / "run"
+    build(write_features(Path(root) / "src"), run / "dataset", cfg, failed=failed)
+    for task, seed in EPISODES:
+        frames = fake_frames(task, seed)
+        save_npz(run / "render" / frames_file(task, seed), frames if images else {k: v for k, v in frames.items() if k != "rgb"})
+    (run / "config.yaml").write_text(yaml.safe_dump({"name": "fake", "tasks": sorted({t for t, _ in EPISODES})}))
+    return run

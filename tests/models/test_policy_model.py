@@ -6,11 +6,15 @@ import io
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from anchordp3.models.ema import ExponentialMovingAverage
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
-from anchordp3.models.policy import AnchorDiffusionPolicy
+from anchordp3.models.kernels import reference_kernels
+from anchordp3.models.unet1d import ConditionalUnet1D, SequenceConv1d
+from anchordp3.models.policy import GRIPPER_OFFSET_SCALE, AnchorDiffusionPolicy, gripper_offsets
+from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import (
     OptimizerConfig,
     PointEncoderConfig,
@@ -64,6 +68,49 @@ def test_relative_targets_round_trip_and_make_a_fixed_offset_a_constant() -> Non
     x = policy.to_target(batch["anchors"], batch["state"])
     assert torch.allclose(x, x[:1].expand_as(x), atol=1e-5)  # one target, wherever the robot is
     torch.testing.assert_close(policy.from_target(x, batch["state"]), batch["anchors"], atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("kernel, stride, padding", [(5, 1, 2), (3, 2, 1), (1, 1, 0)])
+def test_cpu_inference_convolution_matches_torchs(kernel, stride, padding) -> None:
+    torch.manual_seed(0)
+    conv = SequenceConv1d(16, 24, kernel, stride=stride, padding=padding)
+    x = torch.randn(3, 16, 8)
+    with torch.no_grad():
+        fast = conv(x)  # the unfolded matrix product
+    torch.testing.assert_close(fast, F.conv1d(x, conv.weight, conv.bias, stride, padding), atol=1e-5, rtol=1e-5)
+
+
+def test_unet_inference_matches_the_reference_kernels() -> None:
+    torch.manual_seed(0)
+    unet = ConditionalUnet1D(32, 40, TINY.unet).eval()
+    x, cond = torch.randn(2, 8, 32), torch.randn(2, 40)
+    with torch.no_grad():
+        fast = unet(x, torch.tensor([3, 70]), cond)
+        with reference_kernels():
+            reference = unet(x, torch.tensor([3, 70]), cond)
+    torch.testing.assert_close(fast, reference, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(unet(x, torch.tensor([3, 70]), cond).detach(), reference)  # training: torch's own conv
+
+
+def test_gripper_points_see_the_cloud_from_each_end_effector() -> None:
+    layout = StateLayout()
+    batch = samples(2, n=5)
+    offsets = gripper_offsets(batch["points"], batch["state"], layout)
+    assert offsets.shape == (2, 5, 6)
+    for k, arm in enumerate(ARMS):
+        want = (batch["points"][..., :3] - batch["state"][:, None, layout.ee_xyz(arm)]) * GRIPPER_OFFSET_SCALE
+        torch.testing.assert_close(offsets[..., 3 * k:3 * k + 3], want)
+    # the encoder's input grows by 6 channels; the observation keeps its 12
+    policy = AnchorDiffusionPolicy(TINY.model_copy(update={"gripper_points": True}))
+    assert policy.point_encoder.encoders[0].per_point[0].in_features == 18
+    policy.set_normalizers(stats_of(batch))
+    assert policy.encode_observation(batch).shape == (2, TINY.cond_dim)
+    # moving both grippers with the cloud leaves the offsets unchanged
+    moved = {**batch, "points": batch["points"].clone(), "state": batch["state"].clone()}
+    moved["points"][..., :3] += 0.1
+    for arm in ARMS:
+        moved["state"][:, layout.ee_xyz(arm)] += 0.1
+    torch.testing.assert_close(gripper_offsets(moved["points"], moved["state"], layout), offsets)
 
 
 @pytest.mark.parametrize("target", ["absolute", "relative"])

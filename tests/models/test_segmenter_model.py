@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from anchordp3.models.kernels import reference_kernels
 from anchordp3.models.pointnet2_ops import (
     ball_query,
     farthest_point_sample,
@@ -70,6 +71,18 @@ def test_fps_is_deterministic_spread_and_unique() -> None:
     rand = xyz[:, :40]
     d_rand = square_distance(rand, rand) + torch.eye(40) * 10
     assert (d.amin(dim=(1, 2)) > d_rand.amin(dim=(1, 2))).all()  # FPS picks are farther apart than the first 40
+
+
+def test_fps_on_the_cpu_picks_what_the_reference_loop_picks() -> None:
+    g = torch.Generator().manual_seed(1)
+    xyz = torch.rand(3, 500, 3, generator=g)
+    xyz[2, 250:] = xyz[2, :250]  # a cloud of duplicated points, as FPS-repeated clouds are
+    for n in (1, 64, 250, 400):
+        fast = farthest_point_sample(xyz, n)
+        with reference_kernels():
+            loop = farthest_point_sample(xyz, n)
+        assert torch.equal(fast[:2], loop[:2])
+        assert torch.equal(gather(xyz, fast), gather(xyz, loop))  # duplicates: the same points, maybe the other copy
 
 
 def test_ball_query_stays_in_radius_and_three_nn_weights_sum_to_one() -> None:

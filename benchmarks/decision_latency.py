@@ -1,0 +1,100 @@
+"""One closed-loop decision on the CPU, one thread: where its time goes, today's kernels against
+PyTorch's reference ones, side by side in one run.
+
+    python benchmarks/decision_latency.py [--models pretrained] [--task place_mouse] [--seed 2000] [--reps 30]
+
+Builds the evaluation scene of ``(task, seed)`` with the models' own data config, renders one
+observation, computes its point features, and then times, as medians over ``--reps`` calls with
+``torch.set_num_threads(1)``: the render, the features, the segmenter, the policy (encoders and
+every DDIM step of the U-Net), and the two together (``policy_ms``: what issue 15 bounds by 50 ms),
+once with the models' fast CPU kernels (``models.kernels``) and once with ``reference_kernels()``
+(PyTorch's own convolution and the torch FPS loop). Checks that both give the same anchors.
+Prints a table, a profile of the top operators of one fast decision, and a last line
+``RESULT policy_ms=X reference_ms=Y speedup=Z decision_ms=W``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from anchordp3.models.kernels import reference_kernels  # noqa: E402
+from anchordp3.pipeline.evaluation import EvalOptions, eval_run_config, models_folder  # noqa: E402
+from anchordp3.schemas.training import task_id  # noqa: E402
+from anchordp3.sim.closed_loop import EvalEpisode  # noqa: E402
+from anchordp3.stages.evaluate import EvalModels, frames_dict  # noqa: E402
+from anchordp3.stages.features import frame_features  # noqa: E402
+from anchordp3.viz.table import text_table  # noqa: E402
+
+
+def median_ms(fn, reps: int) -> float:
+    """Median wall time of ``fn()`` over ``reps`` calls after one warm-up, milliseconds."""
+    fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000 * statistics.median(times)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models", default="pretrained", help="models folder, or 'pretrained'")
+    ap.add_argument("--task", default="place_mouse")
+    ap.add_argument("--seed", type=int, default=2000)
+    ap.add_argument("--reps", type=int, default=30)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    models_dir = models_folder(None, args.models)
+    cfg = eval_run_config(None, models_dir, EvalOptions(tasks=(args.task,)))
+    models = EvalModels(models_dir)
+    ep = EvalEpisode(args.task, args.seed, cfg.world())
+    obs = ep.observe()
+    points, _ = frame_features(frames_dict(obs), 0, cfg.features, 1)
+    task = task_id(args.task)
+    pts = torch.from_numpy(points)[None]
+
+    def segment():
+        with torch.no_grad():
+            return models.segmenter.probabilities(pts)
+
+    decide = lambda: models.anchors(points, obs.state, task, 1)  # noqa: E731  segmenter + policy, DDIM included
+    rows, fast, ref = [], {}, {}
+    fast["render"] = median_ms(ep.observe, max(3, args.reps // 5))
+    fast["features"] = median_ms(lambda: frame_features(frames_dict(obs), 0, cfg.features, 1), args.reps)
+    for store, ctx in ((fast, contextlib.nullcontext), (ref, reference_kernels)):
+        with ctx():
+            store["segmenter"] = median_ms(segment, args.reps)
+            store["segmenter + policy"] = median_ms(decide, args.reps)
+            store["anchors"] = decide()
+    same = float(np.abs(fast["anchors"] - ref["anchors"]).max())
+    for k in ("render", "features"):
+        rows.append([k, f"{fast[k]:.1f}", "-", "-"])
+    for k in ("segmenter", "segmenter + policy"):
+        rows.append([k, f"{fast[k]:.1f}", f"{ref[k]:.1f}", f"{ref[k] / fast[k]:.2f}x"])
+    full = fast["render"] + fast["features"] + fast["segmenter + policy"]
+    rows.append(["full decision (render + features + models)", f"{full:.1f}", "-", "-"])
+    print(text_table(["one thread, median ms", "fast kernels", "reference kernels", "speed-up"], rows))
+    print(f"\nlargest anchor difference fast vs reference: {same:.2e} (data units); DDIM steps "
+          f"{models.policy.config.scheduler.num_inference_steps}; models {models_dir}")
+    from torch.profiler import ProfilerActivity, profile
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        decide()
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=10))
+    print(f"RESULT policy_ms={fast['segmenter + policy']:.1f} reference_ms={ref['segmenter + policy']:.1f} "
+          f"speedup={ref['segmenter + policy'] / fast['segmenter + policy']:.2f} decision_ms={full:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
