@@ -53,6 +53,7 @@ def main() -> int:
     ap.add_argument("--task", default="place_mouse")
     ap.add_argument("--seed", type=int, default=2000)
     ap.add_argument("--reps", type=int, default=30)
+    ap.add_argument("--ddim-steps", default="", help="also time these DDIM step counts, e.g. 5,3 (fast kernels)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     models_dir = models_folder(None, args.models)
@@ -82,6 +83,11 @@ def main() -> int:
         rows.append([k, f"{fast[k]:.1f}", "-", "-"])
     for k in ("segmenter", "segmenter + policy"):
         rows.append([k, f"{fast[k]:.1f}", f"{ref[k]:.1f}", f"{ref[k] / fast[k]:.2f}x"])
+    for steps in [int(x) for x in args.ddim_steps.split(",") if x.strip()]:
+        models.ddim_steps = steps
+        ms = median_ms(decide, args.reps)
+        rows.append([f"segmenter + policy, {steps} DDIM steps", f"{ms:.1f}", "-", "-"])
+    models.ddim_steps = None
     full = fast["render"] + fast["features"] + fast["segmenter + policy"]
     rows.append(["full decision (render + features + models)", f"{full:.1f}", "-", "-"])
     print(text_table(["one thread, median ms", "fast kernels", "reference kernels", "speed-up"], rows))

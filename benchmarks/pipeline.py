@@ -6,7 +6,9 @@ Runs the data stages of the config into a fresh temporary run directory with Ray
 (items stream between stages), then reads every stage's manifest: the sum of the items' compute
 seconds is what running the stages one after another in one process would take; the ratio to
 the pipelined wall time is what streaming over actor pools buys on this machine. Also prints the
-samples written per second of wall time.
+samples written per second of wall time, and the render and features stages' compute per
+rendered frame with their ratio (the features stage should keep pace with the renderer). Last
+line: ``RESULT features_over_render=X render_ms_per_frame=R features_ms_per_frame=F speedup=S``.
 """
 
 from __future__ import annotations
@@ -41,10 +43,11 @@ def main() -> int:
         t0 = time.perf_counter()
         run_pipeline(cfg, run, RunOptions(workers=args.workers, progress_interval=30), say=lambda m: print(m, file=sys.stderr))
         wall = time.perf_counter() - t0
-        rows, total = [], 0.0
+        rows, total, seconds = [], 0.0, {}
         for s in DATA_STAGES:
             c = read_manifest(stage_dir(run, s)).counts
             total += c.seconds
+            seconds[s] = c.seconds
             rows.append([s, c.done, c.failed, f"{c.seconds:.1f}"])
         ds = open_dataset(stage_dir(run, "write"))
         samples = len(ds)
@@ -54,6 +57,12 @@ def main() -> int:
     print(f"sum of stage compute times (sequential reference): {total:8.1f} s")
     print(f"pipelined wall time (Ray pools, incl. Ray start):  {wall:8.1f} s")
     print(f"speed-up: {total / wall:.2f}x   samples written: {samples} ({samples / wall:.2f} samples/s of wall time)")
+    per_frame = {s: 1000 * seconds[s] / max(samples, 1) for s in ("render", "features")}
+    ratio = per_frame["features"] / per_frame["render"]
+    print(f"per rendered frame: render {per_frame['render']:.1f} ms, features {per_frame['features']:.1f} ms "
+          f"(features / render = {ratio:.2f})")
+    print(f"RESULT features_over_render={ratio:.3f} render_ms_per_frame={per_frame['render']:.1f} "
+          f"features_ms_per_frame={per_frame['features']:.1f} speedup={total / wall:.2f}")
     return 0
 
 

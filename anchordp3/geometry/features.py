@@ -35,8 +35,11 @@ _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 def knn(points: np.ndarray, k: int, query_idx: np.ndarray | None = None, tree: cKDTree | None = None) -> np.ndarray:
     """Indices of the k nearest neighbours (the query point itself included, nearest first).
 
-    Ties in distance are broken by the smaller index, so the neighbourhood does not depend on the
-    tree's layout (rendered depth grids have many equidistant neighbours).
+    Which points make the k nearest does not depend on the tree's layout: where the k-th and the
+    next distance tie (rendered depth grids have many equidistant neighbours), or where a query has
+    an exact duplicate, the row is ordered by distance, then by the smaller index. Other rows keep
+    the tree's order (by distance), which only the order of equidistant neighbours inside the k
+    can differ in; the normals and curvatures computed from a neighbourhood do not depend on it.
 
     points: (M, 3) float, metres.
     k: neighbours per query; reduced to M when the cloud has fewer points.
@@ -49,13 +52,32 @@ def knn(points: np.ndarray, k: int, query_idx: np.ndarray | None = None, tree: c
     if tree is None:
         tree = cKDTree(points, balanced_tree=False)  # unbalanced: ~2x faster build, same queries
     queries = points if query_idx is None else points[query_idx]
-    extra = min(k + _TIE_MARGIN, len(points))
-    dist, idx = tree.query(queries, extra, workers=-1)
-    dist, idx = dist.reshape(len(queries), extra), idx.reshape(len(queries), extra).astype(np.int64, copy=False)
-    if extra > k:
-        order = np.lexsort((idx, dist), axis=1)[:, :k]  # by distance, then index
-        idx = np.take_along_axis(idx, order, axis=1)
+    one_more = min(k + 1, len(points))
+    dist, idx = _query(tree, queries, one_more)
+    if one_more == k:  # every point is a neighbour
+        return _by_distance_then_index(dist, idx)[:, :k]
+    tied = dist[:, k - 1] == dist[:, k]
+    if k > 1:
+        tied |= dist[:, 1] == 0.0  # an exact duplicate of the query: the smaller index comes first
+    idx = idx[:, :k].copy()
+    rows = np.flatnonzero(tied)
+    if rows.size:
+        wide = min(k + _TIE_MARGIN, len(points))
+        d_wide, i_wide = _query(tree, queries[rows], wide)
+        idx[rows] = _by_distance_then_index(d_wide, i_wide)[:, :k]
     return idx
+
+
+def _query(tree: cKDTree, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(distances, indices)`` of the k nearest, both (Q, k), one thread (the stage's actor has one core)."""
+    dist, idx = tree.query(queries, k, workers=1)
+    return dist.reshape(len(queries), k), idx.reshape(len(queries), k).astype(np.int64, copy=False)
+
+
+def _by_distance_then_index(dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Each row of ``idx (Q, K)`` ordered by distance, then index."""
+    order = np.lexsort((idx, dist), axis=1)
+    return np.take_along_axis(idx, order, axis=1)
 
 
 def normals_pca(points: np.ndarray, nbr_idx: np.ndarray, viewpoint: np.ndarray | None = None) -> np.ndarray:
@@ -117,7 +139,9 @@ def point_features(
     """FPS-downsample a cloud and compute the 11-d features of the samples only.
 
     Normals are computed for the samples and their K neighbours (what the samples' curvature
-    needs), curvature for the samples; results equal the whole-cloud computation at those points.
+    needs), or for every point at once when the samples' neighbourhoods can cover the cloud
+    (n_samples * K >= M), curvature for the samples; results equal the whole-cloud computation at
+    those points.
 
     points: (M, 3) float, metres, M >= 1.
     colors: (M, 3) float in [0, 1].
@@ -141,9 +165,14 @@ def point_features(
     idx = farthest_point_sample(points, n_samples, start)
 
     tree = cKDTree(points, balanced_tree=False)
-    sample_nbrs = knn(points, k, idx, tree)  # (n, K)
-    needed, local = _distinct_in_leaf_order(sample_nbrs, tree)
-    normals = normals_pca(points, knn(points, k, needed, tree), viewpoint)  # (U, 3)
+    if len(idx) * k >= len(points):  # the samples' neighbourhoods cover most of the cloud: every point at once
+        every = knn(points, k, None, tree)  # (M, K)
+        normals = normals_pca(points, every, viewpoint)  # (M, 3)
+        local = every[idx]  # the samples' own rows
+    else:
+        sample_nbrs = knn(points, k, idx, tree)  # (n, K)
+        needed, local = _distinct_in_leaf_order(sample_nbrs, tree)
+        normals = normals_pca(points, knn(points, k, needed, tree), viewpoint)  # (U, 3)
     curvature = curvature_features(normals, local, eps)  # row i: neighbourhood of sample i
     feats = np.concatenate([points[idx], colors[idx], normals[local[:, 0]], curvature], axis=1)
     return idx, feats.astype(np.float32)

@@ -57,9 +57,13 @@ def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
         return _fps_loop(xyz, npoint, farthest)
     picks = []
     for c, s in zip(xyz.detach(), farthest.tolist()):
-        if torch.unique(c, dim=0).shape[0] >= npoint:
-            picks.append(torch.from_numpy(fpsample.fps_sampling(np.ascontiguousarray(c.numpy()), npoint, start_idx=s).astype(np.int64)))
-        else:  # fewer distinct points than picks: the loop's lowest-index rule decides the repeats
+        cloud = np.ascontiguousarray(c.numpy())
+        fast = fpsample.fps_sampling(cloud, npoint, start_idx=s).astype(np.int64)
+        # FPS picks a point where one already is only once the distinct points ran out; then the
+        # loop's lowest-index rule decides the repeats
+        if len(np.unique(cloud[fast], axis=0)) == npoint:
+            picks.append(torch.from_numpy(fast))
+        else:
             picks.append(_fps_loop(c[None], npoint, torch.tensor([s]))[0])
     return torch.stack(picks)
 

@@ -134,19 +134,24 @@ class AnchorDiffusionPolicy(nn.Module):
         return F.mse_loss(pred.float(), target)
 
     @torch.no_grad()
-    def predict(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
+    def predict(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None,
+                steps: int | None = None) -> torch.Tensor:
         """DDIM sampling of the next anchors. obs: points (B, N, C), state (B, action_dim),
         task_id (B,) -> anchors (B, horizon, action_dim) float32 in data units (unnormalised).
 
         The initial noise comes from ``generator`` (CPU) when given; the DDIM steps are
-        deterministic, so the same generator seed gives the same anchors. Call on the EMA copy
+        deterministic, so the same generator seed gives the same anchors. ``steps``: DDIM steps
+        (None: the config's ``scheduler.num_inference_steps``). Call on the EMA copy
         (``ExponentialMovingAverage.averaged_model``) in evaluation."""
         scheduler = self.noise_scheduler
         with autocast(self.device, self.mixed_precision):
             cond = self.encode_observation(obs)
         b = cond.shape[0]
         x = torch.randn((b, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
-        scheduler.set_timesteps(self.config.scheduler.num_inference_steps)  # CPU timesteps; the U-Net moves them
+        steps = self.config.scheduler.num_inference_steps if steps is None else steps
+        if not 1 <= steps <= self.config.scheduler.num_train_timesteps:
+            raise ValueError(f"ddim steps: {steps} outside 1..{self.config.scheduler.num_train_timesteps}")
+        scheduler.set_timesteps(steps)  # CPU timesteps; the U-Net moves them
         for t in scheduler.timesteps:
             with autocast(self.device, self.mixed_precision):
                 out = self.unet(x, t, cond)

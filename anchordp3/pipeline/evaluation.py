@@ -55,7 +55,8 @@ class EvalOptions:
     the run's ``models/``); tasks: a subset of the tasks (None: the config's); seeds: the seeds to
     evaluate, a spec like ``2000-2049`` or ``train`` for the training seeds (None: ``episodes``
     unseen seeds from ``first_seed``); out: the evaluation folder (None: ``<run>/eval``); preset:
-    the randomization preset of the evaluation scenes (None: the training data's)."""
+    the randomization preset of the evaluation scenes (None: the training data's); ddim_steps: DDIM
+    steps per decision (None: the policy's own, 10 as DP3)."""
 
     episodes: int = 10
     workers: int = 2
@@ -71,6 +72,7 @@ class EvalOptions:
     seeds: str | None = None
     out: Path | None = None
     preset: str | None = None
+    ddim_steps: int | None = None
 
 
 def models_folder(run_dir: Path | None, models: str | None) -> Path:
@@ -111,7 +113,7 @@ def selected_seeds(cfg: RunConfig, opts: EvalOptions) -> list[int]:
     """The evaluation seeds: ``opts.seeds`` (``train``: the training seeds), else ``opts.episodes``
     seeds disjoint from training."""
     if opts.seeds == "train":
-        return cfg.seed_list
+        return list(cfg.seed_list)
     if opts.seeds:
         return parse_seeds(opts.seeds, "--seeds")
     return eval_seeds(cfg, opts.episodes, opts.first_seed)
@@ -119,9 +121,10 @@ def selected_seeds(cfg: RunConfig, opts: EvalOptions) -> list[int]:
 
 def eval_seeds(cfg: RunConfig, episodes: int, first_seed: int | None = None) -> list[int]:
     """Evaluation seeds, disjoint from the run's training seeds."""
-    base = max(cfg.seed_list) + SEED_OFFSET if first_seed is None else first_seed
-    if base <= max(cfg.seed_list):
-        raise ValueError(f"first_seed: {base} would overlap the training seeds {cfg.seeds}; choose one above {max(cfg.seed_list)}")
+    last = cfg.seed_list.last
+    base = last + SEED_OFFSET if first_seed is None else first_seed
+    if base <= last:
+        raise ValueError(f"first_seed: {base} would overlap the training seeds {cfg.seeds}; choose one above {last}")
     return [base + i for i in range(episodes)]
 
 
@@ -157,7 +160,7 @@ def episode_item(task: str, seed: int) -> str:
 class EvalWorker:
     """Loads the models once, then runs episodes one at a time."""
 
-    def __init__(self, models_dir: str, out_dir: str, cfg_json: str, device: str):
+    def __init__(self, models_dir: str, out_dir: str, cfg_json: str, device: str, ddim_steps: int | None = None):
         import torch
 
         from anchordp3.stages.evaluate import EvalModels
@@ -165,7 +168,7 @@ class EvalWorker:
         torch.set_num_threads(1)
         self.out = Path(out_dir)
         self.cfg = RunConfig.model_validate_json(cfg_json)
-        self.models = EvalModels(Path(models_dir), device)
+        self.models = EvalModels(Path(models_dir), device, ddim_steps)
 
     def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None, through: str) -> dict:
         from anchordp3.stages.evaluate import evaluate_episode
@@ -206,6 +209,8 @@ def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerp
         upstream[name] = file_sha256(Path(models_dir) / name / "model.pt")[:16]
     part = {"world": cfg.world().model_dump(mode="json"), "features": cfg.features.model_dump(mode="json"),
             "max_decisions": opts.max_decisions, "through": opts.through, "plan": cfg.anchors.plan, "dense": cfg.anchors.dense.model_dump(mode="json")}
+    if opts.ddim_steps is not None:  # only when set: evaluations with the policy's own steps keep their fingerprint
+        part["ddim_steps"] = opts.ddim_steps
     return Fingerprint(code_version=anchordp3.__version__, config_hash=config_hash(part), upstream=upstream)
 
 
@@ -238,7 +243,7 @@ def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg:
         n = max(1, min(opts.workers, len(pending)))
         device, gpus = actor_device(opts.device, n)
         workers = [EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(
-            str(models_dir), str(out), cfg.model_dump_json(), device) for _ in range(n)]
+            str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps) for _ in range(n)]
         strip_seeds = set(seeds[:opts.strips])
 
         def submit(w, ep):
@@ -272,7 +277,7 @@ def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg:
             for w in workers:
                 ray.kill(w)
     store.compact(len(todo), complete=all(store.done(episode_item(*ep)) for ep in todo))
-    train_seeds = set(cfg.seed_list)
+    train_seeds = cfg.seed_list
     records = [{**json.loads((out / store.items[episode_item(*ep)].output).read_text()), "seen": ep[1] in train_seeds} for ep in todo]
     write_reports(out, records, cfg, opts)
     return records

@@ -89,7 +89,7 @@ def run_experiment(out: Path, cfg: ExperimentConfig, say: Callable[[str], None] 
     out.mkdir(parents=True, exist_ok=True)
     clock = PhaseClock(out / PHASES_FILE, ARMS, say)
     timed, seconds = clock.timed, clock.seconds
-    first_seed = max(cfg.run.seed_list) + SEED_OFFSET
+    first_seed = cfg.run.seed_list.last + SEED_OFFSET
 
     runs = {"anchors": cfg.run}
     timed("anchors", "data", lambda: run_pipeline(cfg.run, out / "anchors", RunOptions(address=address), say=say))

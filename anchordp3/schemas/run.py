@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from anchordp3.schemas.camera import CameraRigConfig
 from anchordp3.schemas.dataset import WriteConfig
-from anchordp3.schemas.episode import parse_seeds
+from anchordp3.schemas.episode import SeedSet, parse_seed_set
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 from anchordp3.schemas.randomization import PRESETS
 from anchordp3.schemas.sim import SimConfig, WorldConfig
@@ -75,7 +75,7 @@ class RunConfig(BaseModel):
     @field_validator("seeds")
     @classmethod
     def _seeds(cls, v: str) -> str:
-        parse_seeds(v, "seeds")
+        parse_seed_set(v, "seeds")  # ranges only: any range validates at once
         return v
 
     @field_validator("preset")
@@ -101,9 +101,9 @@ class RunConfig(BaseModel):
         return self
 
     @property
-    def seed_list(self) -> list[int]:
-        """The seeds as integers, sorted."""
-        return parse_seeds(self.seeds, "seeds")
+    def seed_list(self) -> SeedSet:
+        """The seeds, sorted and unique, as ranges (never expanded; iterate, index, ``in``, ``len``)."""
+        return parse_seed_set(self.seeds, "seeds")
 
     def world(self) -> WorldConfig:
         """The simulated world of every episode."""
@@ -114,7 +114,7 @@ class RunConfig(BaseModel):
         the fingerprint hashes this, so execution settings never invalidate outputs."""
         world = {"preset": self.preset, "sim": self.sim.model_dump(mode="json")}
         parts = {
-            "rollout": {**world, "tasks": self.tasks, "seeds": self.seed_list},
+            "rollout": {**world, "tasks": self.tasks, "seeds": str(self.seed_list)},
             "anchors": {"anchors": self.anchors.model_dump(mode="json")},
             "render": {**world, "cameras": self.cameras.model_dump(mode="json"), "render": self.render.model_dump(mode="json"),
                        "dagger": self.anchors.dagger.model_dump(mode="json")},

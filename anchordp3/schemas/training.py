@@ -171,6 +171,11 @@ class PointEncoderConfig(_Config):
     hidden_dim: int = Field(default=128, ge=1, description="Width of the per-point MLP.")
     num_layers: int = Field(default=2, ge=1, description="Linear-LayerNorm-ReLU layers in the per-point MLP.")
     out_dim: int = Field(default=192, ge=1, description="Feature length after the final projection.")
+    keypoints: int = Field(
+        default=0, ge=0,
+        description="Soft keypoints beside the max-pool (a spatial softmax over the points): each is the "
+                    "attention-weighted mean of the points' input channels under its own learned per-point score, so "
+                    "object positions reach the policy as coordinates; 0: max-pool only (the report).")
 
 
 class StateEncoderConfig(_Config):
@@ -280,6 +285,11 @@ class PolicyTrainingConfig(_Config):
         default=(0.0, 0.0, 0.0),
         description="Move each training sample's whole scene (cloud, end-effector positions of state and labels; joints "
                     "unchanged) by a translation uniform in +-this per axis, metres (0: no augmentation, the report).")
+    augment_state_noise: float = Field(
+        default=0.0, ge=0,
+        description="Std (metres) of Gaussian noise added to the state's end-effector positions of each training "
+                    "sample, its labels unchanged: the policy learns to reach the same anchor from a little off the "
+                    "path (0: none, the report).")
     val_decision_samples: int = Field(default=256, ge=0, description="Validation decision states (rest frames, evenly spread) whose first predicted anchor is scored in cm at the gripper and rad per joint; 0: skip.")
 
 

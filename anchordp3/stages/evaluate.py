@@ -98,9 +98,9 @@ class EvalRecord:
 
 class EvalModels:
     """The three trained models of a models folder (``<run>/models``, or shipped ones), loaded once
-    per process (EMA policy weights)."""
+    per process (EMA policy weights); ``ddim_steps`` overrides the policy's DDIM steps per decision."""
 
-    def __init__(self, models_dir: Path, device: str | torch.device = "cpu"):
+    def __init__(self, models_dir: Path, device: str | torch.device = "cpu", ddim_steps: int | None = None):
         d = Path(models_dir)
         for name in ("segmenter", "classifier", "policy"):
             if not (d / name / "model.pt").is_file():
@@ -109,6 +109,7 @@ class EvalModels:
         self.segmenter = load_segmenter(d / "segmenter" / "model.pt", self.device)
         self.classifier = load_classifier(d / "classifier" / "model.pt", self.device)
         self.policy = load_policy(d / "policy" / "model.pt", self.device, ema=True)
+        self.ddim_steps = ddim_steps  # None: the policy's own
 
     def classify(self, text: str) -> int:
         """The model task id the instruction names."""
@@ -123,7 +124,7 @@ class EvalModels:
                "state": torch.from_numpy(np.asarray(state, dtype=np.float32))[None].to(self.device),
                "task_id": torch.tensor([task], dtype=torch.long, device=self.device)}
         gen = torch.Generator().manual_seed(noise_seed)
-        return self.policy.predict(obs, generator=gen)[0].cpu().numpy()
+        return self.policy.predict(obs, generator=gen, steps=self.ddim_steps)[0].cpu().numpy()
 
 
 def frames_dict(obs: Observation) -> dict[str, np.ndarray]:

@@ -27,7 +27,7 @@ import torch
 from anchordp3.dataset.reader import ShardedDataset
 from anchordp3.dataset.torch_data import SplitDataset, collate_samples
 from anchordp3.models.device import needs_grad_scaler, seed_everything
-from anchordp3.models.augment import random_translation, translate_scene
+from anchordp3.models.augment import jitter_grippers, random_translation, translate_scene
 from anchordp3.models.ema import ExponentialMovingAverage
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
@@ -154,14 +154,17 @@ class PolicyJob(TrainingJob):
 
     def augmented(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """A training batch with the whole scene moved by a random translation per sample
-        (``augment_translation``; see ``models.augment``)."""
-        extent = self.cfg.augment_translation
-        if not any(extent):
-            return obs
-        delta = random_translation(len(obs["state"]), extent, self.generator).to(self.device)
+        (``augment_translation``) and the state's grippers jittered (``augment_state_noise``); see
+        ``models.augment``. Unchanged when both are off."""
+        extent, noise = self.cfg.augment_translation, self.cfg.augment_state_noise
         layout = StateLayout.of_length(self.cfg.model.action_dim)
-        points, state, anchors = translate_scene(obs["points"], obs["state"], obs["anchors"], delta, layout)
-        return {**obs, "points": points, "state": state, "anchors": anchors}
+        if any(extent):
+            delta = random_translation(len(obs["state"]), extent, self.generator).to(self.device)
+            points, state, anchors = translate_scene(obs["points"], obs["state"], obs["anchors"], delta, layout)
+            obs = {**obs, "points": points, "state": state, "anchors": anchors}
+        if noise:
+            obs = {**obs, "state": jitter_grippers(obs["state"], noise, layout, self.generator)}
+        return obs
 
     def train_step(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
         loss = self.model.compute_loss(self.augmented(self.observation(batch)), generator=self.generator)

@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from anchordp3.models.ema import ExponentialMovingAverage
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
+from anchordp3.models.encoders import soft_keypoints
 from anchordp3.models.kernels import reference_kernels
 from anchordp3.models.unet1d import ConditionalUnet1D, SequenceConv1d
 from anchordp3.models.policy import GRIPPER_OFFSET_SCALE, AnchorDiffusionPolicy, gripper_offsets
@@ -90,6 +91,31 @@ def test_unet_inference_matches_the_reference_kernels() -> None:
             reference = unet(x, torch.tensor([3, 70]), cond)
     torch.testing.assert_close(fast, reference, atol=1e-4, rtol=1e-4)
     torch.testing.assert_close(unet(x, torch.tensor([3, 70]), cond).detach(), reference)  # training: torch's own conv
+
+
+def test_fewer_ddim_steps_can_be_asked_for_at_decision_time() -> None:
+    policy = make_policy().eval()
+    batch = samples(2)
+    policy.set_normalizers(stats_of(batch))
+    obs = {k: batch[k] for k in ("points", "state", "task_id")}
+    three = policy.predict(obs, generator=torch.Generator().manual_seed(0), steps=3)
+    assert three.shape == (2, 8, 32)
+    assert not torch.equal(three, policy.predict(obs, generator=torch.Generator().manual_seed(0)))  # the config's 10
+    with pytest.raises(ValueError, match="ddim steps"):
+        policy.predict(obs, steps=0)
+
+
+def test_soft_keypoints_are_weighted_means_of_the_cloud() -> None:
+    points = torch.tensor([[[0.0, 0.0, 0.0, 1.0], [1.0, 2.0, 3.0, 0.0]]])
+    scores = torch.tensor([[[0.0, 50.0], [0.0, -50.0]]])  # keypoint 0: both points alike; 1: the first point
+    torch.testing.assert_close(soft_keypoints(scores, points), torch.tensor([[0.5, 1.0, 1.5, 0.5, 0.0, 0.0, 0.0, 1.0]]))
+    policy = AnchorDiffusionPolicy(TINY.model_copy(update={"point_encoder": TINY.point_encoder.model_copy(update={"keypoints": 4})}))
+    batch = samples(3)
+    policy.set_normalizers(stats_of(batch))
+    assert policy.encode_observation(batch).shape == (3, TINY.cond_dim)
+    loss = policy.compute_loss(batch)
+    loss.backward()
+    assert policy.point_encoder.encoders[batch["task_id"][0]].keypoint_scores.weight.grad.abs().sum() > 0
 
 
 def test_gripper_points_see_the_cloud_from_each_end_effector() -> None:
