@@ -9,6 +9,7 @@ flight is bounded per actor, and only IDs and paths travel between processes.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import sys
@@ -436,6 +437,13 @@ class Runner:
                              seconds=time.perf_counter() - t0, info={"samples": info.counts.samples, "episodes": info.counts.episodes}))
 
 
+class _TokenAuthNotice(logging.Filter):
+    """Drops Ray's notice that a new local cluster enabled token authentication (it stays enabled)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith("Token authentication is enabled")
+
+
 def ensure_ray(address: str | None, cfg: RunConfig | None = None) -> None:
     """Connect to Ray: the running instance if any, a cluster at ``address``, or a new local one
     with enough logical CPUs for every pool (CPU counts are reservations, not a speed limit)."""
@@ -447,8 +455,11 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None) -> None:
     need = 0.0
     if cfg is not None:
         need = sum(getattr(cfg.execution.pools, s).cpus * getattr(cfg.execution.pools, s).workers for s in DATA_STAGES)
+    # A new local Ray enables token authentication by default and warns that it did: nothing a
+    # user needs to act on, so that one message is dropped. It listens on loopback only.
+    logging.getLogger("ray._private.authentication.authentication_token_setup").addFilter(_TokenAuthNotice())
     ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(need)), include_dashboard=False, logging_level="WARNING",
-             log_to_driver=False, object_store_memory=100 * 1024**2)
+             log_to_driver=False, object_store_memory=100 * 1024**2, _node_ip_address="127.0.0.1")
 
 
 def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(), say: Callable[[str], None] = lambda m: print(m, file=sys.stderr)) -> dict:
