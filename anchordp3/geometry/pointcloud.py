@@ -29,6 +29,7 @@ def backproject(
     cam2world: np.ndarray,
     rgb: np.ndarray | None = None,
     mask: np.ndarray | None = None,
+    box: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Cloud:
     """Back-project every valid depth pixel to a world point: p = R^-1 (K^-1 [u v 1]^T d - t).
 
@@ -39,7 +40,9 @@ def backproject(
     cam2world: (4, 4) rigid transform, OpenCV camera frame -> world.
     rgb: optional (H, W, 3) uint8 (0-255) or float (0-1) colours.
     mask: optional (H, W) bool / integer label image; carried along as uint8 labels.
-    Returns: Cloud with M = number of valid pixels, in row-major pixel order.
+    box: optional ``(lo, hi)`` corners (3,), metres: points outside (``crop_box``) are dropped
+        before colours and labels are gathered (the same cloud as cropping afterwards, cheaper).
+    Returns: Cloud with M = number of valid (and kept) pixels, in row-major pixel order.
     """
     depth = np.asarray(depth)
     if depth.ndim != 2:
@@ -54,6 +57,9 @@ def backproject(
     ray2world = cam2world[:3, :3] @ np.linalg.inv(np.asarray(K, dtype=np.float64))
     pix = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64)
     points = (pix @ ray2world.T) * d[:, None] + cam2world[:3, 3]
+    if box is not None:
+        keep = crop_box(points.astype(np.float32), *box)
+        points, v, u = points[keep], v[keep], u[keep]
 
     colors = None
     if rgb is not None:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from anchordp3.geometry.features import point_features
-from anchordp3.geometry.pointcloud import Cloud, backproject, crop_box, fuse_views, table_top_height
+from anchordp3.geometry.pointcloud import Cloud, backproject, fuse_views, table_top_height
 from anchordp3.schemas.stages import FeaturesConfig
 from anchordp3.stages.files import save_npz
 from anchordp3.stages.render import load_frames
@@ -34,13 +34,13 @@ def features_file(task: str, seed: int) -> str:
 def frame_cloud(frames: dict[str, np.ndarray], i: int, cfg: FeaturesConfig) -> Cloud:
     """The fused, cropped cloud of frame ``i`` of a rendered-frames file (colours in [0, 1],
     labels 0/1): inside the workspace box and, with ``table_margin``, above the table top."""
-    views = [backproject(frames["depth"][i, v], frames["K"][i, v], frames["cam2world"][i, v], frames["rgb"][i, v], frames["mask"][i, v])
+    box = (np.asarray(cfg.workspace_lo), np.asarray(cfg.workspace_hi))
+    views = [backproject(frames["depth"][i, v], frames["K"][i, v], frames["cam2world"][i, v], frames["rgb"][i, v], frames["mask"][i, v], box)
              for v in range(frames["depth"].shape[1])]
-    cloud = fuse_views(views)
-    keep = crop_box(cloud.points, np.asarray(cfg.workspace_lo), np.asarray(cfg.workspace_hi))
-    if cfg.table_margin is not None and keep.any():
-        top = table_top_height(cloud.points[keep])
-        keep &= cloud.points[:, 2] > top + cfg.table_margin
+    cloud = fuse_views(views)  # already inside the workspace box
+    if cfg.table_margin is None or len(cloud.points) == 0:
+        return cloud
+    keep = cloud.points[:, 2] > table_top_height(cloud.points) + cfg.table_margin
     return Cloud(cloud.points[keep], cloud.colors[keep], cloud.labels[keep])
 
 
