@@ -78,6 +78,20 @@ def test_invalid_pixels_are_skipped_and_attributes_follow() -> None:
     np.testing.assert_allclose(backproject(depth, K, CAM2WORLD, rgb=float_rgb).colors, cloud.colors, atol=1e-7)
 
 
+def test_a_box_given_to_backproject_crops_as_cropping_afterwards_would() -> None:
+    depth, _ = render_plane(CAM2WORLD, height=0.75)
+    rgb = np.random.default_rng(2).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    mask = np.random.default_rng(3).random((H, W)) > 0.5
+    whole = backproject(depth, K, CAM2WORLD, rgb=rgb, mask=mask)
+    lo, hi = whole.points.min(0) + 0.3 * np.ptp(whole.points, 0), whole.points.max(0) - 0.2 * np.ptp(whole.points, 0)
+    lo[2], hi[2] = -10.0, 10.0  # a plane: crop in x and y only
+    keep = crop_box(whole.points, lo, hi)
+    assert 0 < keep.sum() < len(keep)
+    boxed = backproject(depth, K, CAM2WORLD, rgb=rgb, mask=mask, box=(lo, hi))
+    for got, want in zip(boxed, whole):
+        np.testing.assert_array_equal(got, want[keep])
+
+
 def test_rejects_mismatched_images() -> None:
     depth = np.ones((H, W), dtype=np.float32)
     with pytest.raises(ValueError):
