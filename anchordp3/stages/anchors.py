@@ -66,16 +66,11 @@ class Anchors:
     states: np.ndarray
 
 
-def layout_of(states: np.ndarray) -> StateLayout:
-    """The state layout that fits vectors of ``states.shape[-1]`` dims."""
-    return StateLayout.of_length(states.shape[-1])
-
-
 def anchor_states(states: np.ndarray, actions: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Labels of anchors at steps ``t``: ``states[t]`` with grippers from ``actions[t - 1]``.
 
     states: (T + 1, D) measured; actions: (T, J) commanded; t: (A,) ints in 1..T. Returns (A, D)."""
-    layout = layout_of(states)
+    layout = StateLayout.of_length(states.shape[-1])
     out = states[t].astype(np.float64).copy()
     for arm in ARMS:
         g = layout.gripper(arm)
@@ -92,7 +87,7 @@ def horizon_indices(start: int, horizon: int, n: int, stride: int = 1) -> np.nda
 def commanded_states(states: np.ndarray, actions: np.ndarray, steps: np.ndarray) -> np.ndarray:
     """Dense labels: the state ``states[s + 1]`` reached by command ``actions[s]``, with every
     joint and gripper as commanded. steps: (L,) ints in 0..T-1. Returns (L, D) float64."""
-    layout = layout_of(states)
+    layout = StateLayout.of_length(states.shape[-1])
     out = states[steps + 1].astype(np.float64).copy()
     out[:, :layout.joint_dim] = actions[steps, :layout.joint_dim]
     return out
@@ -109,7 +104,7 @@ def kinematic_anchors(states: np.ndarray, actions: np.ndarray | None = None,
     pressing on an object hides its command there, so this is less exact.
 
     Returns (A,) int64 state indices, increasing."""
-    layout = layout_of(states)
+    layout = StateLayout.of_length(states.shape[-1])
     joints = np.concatenate([np.arange(layout.dim)[layout.qpos(a)] for a in ARMS])
     grippers = [layout.gripper(a) for a in ARMS]
     if actions is not None:
@@ -139,7 +134,7 @@ def kinematic_anchors(states: np.ndarray, actions: np.ndarray | None = None,
 
 def moving_arm(states: np.ndarray, t0: int, t1: int) -> str:
     """Which arm moved between state indices ``t0`` and ``t1``: left, right or both."""
-    layout = layout_of(states)
+    layout = StateLayout.of_length(states.shape[-1])
     travel = {a: float(np.abs(np.diff(states[t0:t1 + 1, layout.qpos(a)], axis=0)).sum()
                        + np.abs(np.diff(states[t0:t1 + 1, layout.gripper(a)])).sum()) for a in ARMS}
     hi = max(travel.values())
@@ -186,7 +181,7 @@ def _rng(cfg: AnchorsConfig, task: str, seed: int, salt: str) -> np.random.Gener
 def reached(state: np.ndarray, anchor_state: np.ndarray, tol: float) -> bool:
     """Whether measured ``state (D,)`` has reached the measured anchor state ``anchor_state (D,)``:
     every arm joint within ``tol`` radians and every gripper within ``GRIPPER_REACHED``."""
-    layout = layout_of(state[None])
+    layout = StateLayout.of_length(state.shape[-1])
     for arm in ARMS:
         if np.abs(state[layout.qpos(arm)] - anchor_state[layout.qpos(arm)]).max() >= tol:
             return False

@@ -33,7 +33,7 @@ from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
 from anchordp3.models.policy import AnchorDiffusionPolicy
 from anchordp3.schemas.stages import FRAME_KINDS
-from anchordp3.schemas.state import ARMS, StateLayout
+from anchordp3.schemas.state import ARMS
 from anchordp3.schemas.training import TASK_NAMES, PolicyConfig, TrainingConfig, model_task_ids
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.train_segmenter import load_segmenter, stats_limits
@@ -157,7 +157,7 @@ class PolicyJob(TrainingJob):
         (``augment_translation``) and the state's grippers jittered (``augment_state_noise``); see
         ``models.augment``. Unchanged when both are off."""
         extent, noise = self.cfg.augment_translation, self.cfg.augment_state_noise
-        layout = StateLayout.of_length(self.cfg.model.action_dim)
+        layout = self.model.layout
         if any(extent):
             delta = random_translation(len(obs["state"]), extent, self.generator).to(self.device)
             points, state, anchors = translate_scene(obs["points"], obs["state"], obs["anchors"], delta, layout)
@@ -209,7 +209,7 @@ class PolicyJob(TrainingJob):
         picks = self.decision_indices()
         if not picks:
             return {}
-        layout = StateLayout.of_length(self.cfg.model.action_dim)
+        layout = self.model.layout
         xyz = [np.arange(layout.dim)[layout.ee_xyz(a)] for a in ARMS]
         joints = np.concatenate([np.arange(layout.dim)[layout.qpos(a)] for a in ARMS])
         cm, rad, task = [], [], []
