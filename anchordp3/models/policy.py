@@ -2,7 +2,8 @@
 
 Observation: ``points (B, N, 12)`` (11 features + critical probability), ``state (B, 32)``,
 ``task_id (B,)``. With ``gripper_points`` every point also carries its offset from each end
-effector (``gripper_offsets``) before the per-point MLP. The task's own point encoder and the state MLP give the FiLM condition of one
+effector (``gripper_offsets``) before the per-point MLP; with ``object_tokens`` the critical points'
+K clusters (``models.objects``) add their own feature to the condition. The task's own point encoder and the state MLP give the FiLM condition of one
 shared conditional 1-D U-Net, which denoises the ``(B, H, 32)`` anchor sequence with diffusers'
 ``DDIMScheduler`` (DP3's settings: 100 training steps, squaredcos_cap_v2, clip_sample,
 prediction_type ``sample``, 10 inference steps). Training loss: MSE over all H x 32 elements of the
@@ -22,6 +23,7 @@ from torch import nn
 from anchordp3.models.device import autocast
 from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
 from anchordp3.models.normalizer import MinMaxNormalizer
+from anchordp3.models.objects import ObjectTokenEncoder, object_tokens
 from anchordp3.models.unet1d import ConditionalUnet1D
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
@@ -68,6 +70,7 @@ class AnchorDiffusionPolicy(nn.Module):
         encoder = config.point_encoder.model_copy(update={"in_channels": self.point_channels + extra})
         self.point_encoder = TaskConditionedEncoder(config.num_tasks, encoder)
         self.state_encoder = StateEncoder(config.state_encoder)
+        self.object_encoder = ObjectTokenEncoder(config.object_tokens, out_dim=config.object_encoder_dim) if config.object_tokens else None
         self.unet = ConditionalUnet1D(config.action_dim, config.cond_dim, config.unet)
         self.point_normalizer = MinMaxNormalizer(self.point_channels)
         self.state_normalizer = MinMaxNormalizer(config.action_dim)
@@ -106,15 +109,17 @@ class AnchorDiffusionPolicy(nn.Module):
 
     # --------------------------------------------------------------------------- forward
     def encode_observation(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """obs (data units) -> FiLM condition (B, point out_dim + state hidden)."""
+        """obs (data units) -> FiLM condition (B, cond_dim): point feature, state feature and, with
+        ``object_tokens``, the critical-object tokens' feature."""
         points, state, task_id = self._observation(obs)
         normed = self.point_normalizer(points)
         if self.config.gripper_points:
             normed = torch.cat([normed, gripper_offsets(points, state, self.layout)], dim=-1)
-        return torch.cat([
-            self.point_encoder(normed, task_id),
-            self.state_encoder(self.state_normalizer(state)),
-        ], dim=-1)
+        parts = [self.point_encoder(normed, task_id), self.state_encoder(self.state_normalizer(state))]
+        if self.object_encoder is not None:
+            tokens = object_tokens(points, state, self.layout, self.config.object_tokens)
+            parts.append(self.object_encoder(tokens.to(parts[0].dtype)))
+        return torch.cat(parts, dim=-1)
 
     def compute_loss(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
         """Diffusion training loss of one batch: MSE over all (B, H, action_dim) elements.

@@ -256,6 +256,12 @@ class PolicyConfig(_Config):
         description="Give every point, before pooling, its offset from each arm's end effector (6 more channels, "
                     "metres x 2), so the encoder sees where the objects lie relative to the grippers; off: the point "
                     "alone, as in the report.")
+    object_tokens: int = Field(
+        default=0, ge=0, le=8,
+        description="Critical-object tokens beside the point encoder: the points the critical channel marks, "
+                    "clustered into this many objects (k-means, largest first), each summarised by its centroid, its "
+                    "offset from each end effector, its spread and size (models.objects); 0: none, as in the report.")
+    object_encoder_dim: int = Field(default=64, ge=1, description="Width of the object tokens' feature in the FiLM condition (with object_tokens > 0).")
 
     @model_validator(mode="after")
     def _dims(self) -> PolicyConfig:
@@ -265,8 +271,8 @@ class PolicyConfig(_Config):
 
     @property
     def cond_dim(self) -> int:
-        """Length of the observation feature fed to FiLM: point feature + state feature."""
-        return self.point_encoder.out_dim + self.state_encoder.hidden_dim
+        """Length of the observation feature fed to FiLM: point feature + state feature (+ object tokens' feature)."""
+        return self.point_encoder.out_dim + self.state_encoder.hidden_dim + (self.object_encoder_dim if self.object_tokens else 0)
 
 
 class PolicyTrainingConfig(_Config):

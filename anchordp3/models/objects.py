@@ -1,0 +1,116 @@
+"""Critical-object tokens: the segmented cloud summarised as K object clusters, for the policy.
+
+The first move of a task (home to the pre-grasp) is decided by where one object lies. A
+max-pooled point encoder has to learn to read that position off 1,024 points from a few dozen
+scenes per task, and measured on the recipe's data it does not (9 cm off on unseen scenes), while
+a linear fit on the centroids of the two critical clusters finds the pre-grasp within 0.3 cm. So
+the policy can be given those clusters directly:
+
+1. the critical points are those whose probability (the segmenter's, or the simulator's label)
+   is above ``threshold``;
+2. K seeds are picked deterministically among an even subsample of the points (at most
+   ``SEED_CANDIDATES``), each the critical one that maximises ``density x distance to the seeds
+   so far`` (density: critical neighbours within ``SEED_RADIUS``), so a stray mislabelled point
+   never seeds a cluster;
+3. a few Lloyd iterations (k-means) assign every critical point to its nearest centre;
+4. clusters are ordered by size, largest first, and each becomes a token of ``TOKEN_FEATURES``
+   numbers: its centroid, its centroid's offset from each end effector, its spread, its top and its
+   share of the critical points (positions in metres x ``POSITION_SCALE``).
+
+Everything is batched tensor arithmetic (no randomness, no Python loop over samples), so it runs
+inside the policy's forward pass, after augmentation, at training and at inference alike.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from anchordp3.schemas.state import ARMS, StateLayout
+
+POSITION_SCALE = 2.0  # metres -> about [-1, 1] over the workspace, as the gripper offsets
+SPREAD_SCALE = 10.0  # a cluster spread of 2-10 cm -> 0.2-1
+SEED_RADIUS = 0.02  # metres: neighbours counted for a seed's density
+SEED_CANDIDATES = 256  # points (an even subsample) considered as seeds
+LLOYD_ITERATIONS = 6
+TOKEN_FEATURES = 3 + 3 * len(ARMS) + 3 + 1 + 1
+
+
+def cluster_critical_points(xyz: torch.Tensor, critical: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """K-means of each cloud's critical points with deterministic, outlier-robust seeds.
+
+    xyz: (B, N, 3) metres; critical: (B, N) bool; k >= 1.
+    Returns ``assign (B, N) long`` in [0, k) (meaningless where not critical) and ``centres (B, k, 3)``,
+    ordered by cluster size, largest first; an empty cluster's centre is its seed."""
+    b, n, _ = xyz.shape
+    weight = critical.to(xyz.dtype)
+    cand = torch.arange(0, n, -(-n // SEED_CANDIDATES), device=xyz.device)  # an even subsample, whatever the order
+    cxyz, cw = xyz[:, cand], weight[:, cand]  # (B, m, 3), (B, m)
+    near = (torch.cdist(cxyz, cxyz) < SEED_RADIUS).to(xyz.dtype)
+    density = (near * cw[:, None, :]).sum(-1) * cw  # (B, m): 0 for non-critical candidates
+    far = torch.full_like(density, 1.0)
+    seeds = []
+    for _ in range(k):
+        pick = torch.argmax(density * far, dim=1)  # (B,)
+        seed = cxyz[torch.arange(b), pick]  # (B, 3)
+        seeds.append(seed)
+        d = (cxyz - seed[:, None, :]).norm(dim=-1)
+        far = d if len(seeds) == 1 else torch.minimum(far, d)
+    centres = torch.stack(seeds, dim=1)  # (B, k, 3)
+    for _ in range(LLOYD_ITERATIONS):
+        assign = torch.cdist(xyz, centres).argmin(dim=-1)  # (B, N)
+        onehot = torch.nn.functional.one_hot(assign, k).to(xyz.dtype) * weight[..., None]  # (B, N, k)
+        count = onehot.sum(1)  # (B, k)
+        mean = torch.einsum("bnk,bnc->bkc", onehot, xyz) / count.clamp(min=1)[..., None]
+        centres = torch.where(count[..., None] > 0, mean, centres)
+    assign = torch.cdist(xyz, centres).argmin(dim=-1)
+    count = (torch.nn.functional.one_hot(assign, k).to(xyz.dtype) * weight[..., None]).sum(1)
+    order = torch.sort(-count, dim=1, stable=True).indices  # (B, k), largest first
+    rank = torch.argsort(order, dim=1)  # old cluster id -> its rank
+    return torch.gather(rank, 1, assign), torch.gather(centres, 1, order[..., None].expand(-1, -1, 3))
+
+
+def object_tokens(points: torch.Tensor, state: torch.Tensor, layout: StateLayout, k: int,
+                  threshold: float = 0.5) -> torch.Tensor:
+    """The K critical-object tokens of each observation.
+
+    points: (B, N, C) in data units, xyz (metres) first and the critical probability last;
+    state: (B, D) in data units. Returns (B, k, TOKEN_FEATURES) float32: per cluster (largest
+    first) its centroid, the centroid minus each arm's end effector (``ARMS`` order), the per-axis
+    spread, the top (highest z) minus the centroid's z, all x their scales, and its share of the
+    critical points. A cloud without critical points gives zero tokens."""
+    xyz = points[..., :3].float()
+    critical = points[..., -1] > threshold
+    assign, _ = cluster_critical_points(xyz, critical, k)
+    member = torch.nn.functional.one_hot(assign, k).float() * critical[..., None].float()  # (B, N, k)
+    count = member.sum(1)  # (B, k)
+    safe = count.clamp(min=1)[..., None]
+    centroid = torch.einsum("bnk,bnc->bkc", member, xyz) / safe
+    own = torch.einsum("bnk,bkc->bnc", member, centroid)  # each point's own centroid (0 if not critical)
+    spread = (torch.einsum("bnk,bnc->bkc", member, (xyz - own) ** 2) / safe).sqrt()
+    top = torch.where(member.bool(), xyz[..., 2:3].expand(-1, -1, k), torch.full_like(member, -1e3)).amax(1)  # (B, k)
+    ee = [state[:, None, layout.ee_xyz(arm)].float() for arm in ARMS]
+    present = (count > 0).float()[..., None]
+    feats = torch.cat([
+        centroid * POSITION_SCALE,
+        *[(centroid - e) * POSITION_SCALE for e in ee],
+        spread * SPREAD_SCALE,
+        ((top - centroid[..., 2]) * SPREAD_SCALE)[..., None],
+        (count / critical.float().sum(1, keepdim=True).clamp(min=1))[..., None],
+    ], dim=-1)
+    return feats * present
+
+
+class ObjectTokenEncoder(torch.nn.Module):
+    """The K tokens (concatenated, largest cluster first) -> an MLP feature for the FiLM condition.
+
+    tokens: (B, k, TOKEN_FEATURES) -> (B, out_dim)."""
+
+    def __init__(self, k: int, hidden_dim: int = 128, out_dim: int = 64) -> None:
+        super().__init__()
+        self.net = torch.nn.Sequential(
+            torch.nn.Linear(k * TOKEN_FEATURES, hidden_dim), torch.nn.ReLU(inplace=True),
+            torch.nn.Linear(hidden_dim, out_dim), torch.nn.LayerNorm(out_dim))
+        self.out_dim = out_dim
+
+    def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+        return self.net(tokens.flatten(1))

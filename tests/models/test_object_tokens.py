@@ -1,0 +1,92 @@
+"""Critical-object tokens: the segmented cloud's objects found, ordered and described the same way
+wherever the scene, the point order or a stray mislabelled point."""
+
+from __future__ import annotations
+
+import torch
+
+from anchordp3.models.encoders import append_critical_probability
+from anchordp3.models.objects import POSITION_SCALE, TOKEN_FEATURES, cluster_critical_points, object_tokens
+from anchordp3.models.policy import AnchorDiffusionPolicy
+from anchordp3.schemas.state import ARMS, StateLayout
+from tests.models.test_policy_model import TINY, samples, stats_of
+
+LAYOUT = StateLayout()
+
+
+def scene(seed: int = 0, stray: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A table of 400 points with a big critical blob (a scale, 150 points, at (0.2, 0.1)) and a
+    small one (a mouse, 60 points, at (-0.1, -0.05)), optionally one stray critical point far away.
+    Returns points (1, N, 12), state (1, 32) and the two true centroids (2, 3), big first."""
+    g = torch.Generator().manual_seed(seed)
+    table = torch.rand(400, 3, generator=g) * torch.tensor([0.8, 0.6, 0.0]) - torch.tensor([0.4, 0.3, -0.74])
+    big = torch.randn(150, 3, generator=g) * 0.03 + torch.tensor([0.2, 0.1, 0.76])
+    small = torch.randn(60, 3, generator=g) * 0.015 + torch.tensor([-0.1, -0.05, 0.76])
+    xyz = [table, big, small]
+    label = [torch.zeros(400), torch.ones(150), torch.ones(60)]
+    if stray:
+        xyz.append(torch.tensor([[0.38, -0.28, 0.74]]))
+        label.append(torch.ones(1))
+    xyz, label = torch.cat(xyz), torch.cat(label)
+    feats = torch.cat([xyz, torch.rand(len(xyz), 8, generator=g)], dim=1)
+    points = append_critical_probability(feats[None], label[None])
+    state = torch.rand(1, 32, generator=g)
+    truth = torch.stack([big.mean(0), small.mean(0)])
+    return points, state, truth
+
+
+def test_two_objects_are_found_largest_first() -> None:
+    points, state, truth = scene()
+    critical = points[..., -1] > 0.5
+    assign, centres = cluster_critical_points(points[..., :3], critical, 2)
+    torch.testing.assert_close(centres[0], truth, atol=2e-3, rtol=0)
+    counts = torch.bincount(assign[0][critical[0]], minlength=2)
+    assert counts.tolist() == [150, 60]
+
+
+def test_a_stray_critical_point_does_not_seed_an_object() -> None:
+    points, state, truth = scene(stray=True)
+    _, centres = cluster_critical_points(points[..., :3], points[..., -1] > 0.5, 2)
+    assert (centres[0] - truth).norm(dim=-1).max() < 0.01
+
+
+def test_tokens_follow_the_scene_and_not_the_point_order() -> None:
+    points, state, truth = scene()
+    tokens = object_tokens(points, state, LAYOUT, 2)
+    assert tokens.shape == (1, 2, TOKEN_FEATURES)
+    torch.testing.assert_close(tokens[0, :, :3], truth * POSITION_SCALE, atol=2e-3, rtol=0)
+    for k, arm in enumerate(ARMS):
+        want = (truth - state[0, LAYOUT.ee_xyz(arm)]) * POSITION_SCALE
+        torch.testing.assert_close(tokens[0, :, 3 + 3 * k:6 + 3 * k], want, atol=2e-3, rtol=0)
+    torch.testing.assert_close(tokens[0, :, -1], torch.tensor([150 / 210, 60 / 210]))
+    shuffled = points[:, torch.randperm(points.shape[1], generator=torch.Generator().manual_seed(3))]
+    torch.testing.assert_close(object_tokens(shuffled, state, LAYOUT, 2), tokens, atol=1e-5, rtol=0)
+    # the whole scene and robot moved together: positions shift, offsets from the grippers stay
+    delta = torch.tensor([0.05, -0.03, 0.01])
+    moved_points, moved_state = points.clone(), state.clone()
+    moved_points[..., :3] += delta
+    for arm in ARMS:
+        moved_state[:, LAYOUT.ee_xyz(arm)] += delta
+    moved = object_tokens(moved_points, moved_state, LAYOUT, 2)
+    torch.testing.assert_close(moved[..., :3], tokens[..., :3] + delta * POSITION_SCALE, atol=1e-4, rtol=0)
+    torch.testing.assert_close(moved[..., 3:], tokens[..., 3:], atol=1e-4, rtol=0)
+
+
+def test_a_cloud_without_critical_points_gives_empty_tokens() -> None:
+    points, state, _ = scene()
+    points[..., -1] = 0.0
+    assert object_tokens(points, state, LAYOUT, 3).abs().max() == 0
+
+
+def test_the_policy_conditions_on_object_tokens_and_learns() -> None:
+    config = TINY.model_copy(update={"object_tokens": 2})
+    assert config.cond_dim == TINY.cond_dim + config.object_encoder_dim
+    torch.manual_seed(0)
+    policy = AnchorDiffusionPolicy(config)
+    batch = samples(4)
+    policy.set_normalizers(stats_of(batch))
+    cond = policy.encode_observation(batch)
+    assert cond.shape == (4, config.cond_dim)
+    policy.compute_loss(batch, generator=torch.Generator().manual_seed(0)).backward()
+    assert policy.object_encoder.net[0].weight.grad.abs().sum() > 0
+    assert policy.predict(batch, generator=torch.Generator().manual_seed(1)).shape == (4, 8, 32)
