@@ -88,12 +88,16 @@ def snapshot(
     typer.echo(f"wrote {take(task, seed, world_config(preset), out)}")
 
 
-def _run_options(stages, workers, address, force, from_stage):
+def _run_options(stages, workers, address, force, from_stage, keep_outputs):
     from anchordp3.pipeline.runner import RunOptions
     from anchordp3.schemas.run import DATA_STAGES
 
     chosen = tuple(x.strip() for x in stages.split(",")) if stages else DATA_STAGES
-    return RunOptions(stages=chosen, workers=workers, address=address, force=force, from_stage=from_stage)
+    return RunOptions(stages=chosen, workers=workers, address=address, force=force, from_stage=from_stage,
+                      keep_outputs=keep_outputs)
+
+
+KEEP_OUTPUTS_HELP = "Keep outputs that only older code made (same config) instead of refusing; --force redoes them."
 
 
 @app.command()
@@ -104,8 +108,9 @@ def run(
     stages: str = typer.Option(None, help="Comma-separated data stages to run (default: all)."),
     workers: int = typer.Option(None, min=1, help="Actors per stage pool (overrides the config)."),
     address: str = typer.Option(None, help="Ray cluster to join: auto or ray://HOST:PORT (default: a local Ray)."),
-    force: bool = typer.Option(False, "--force", help="Redo the stages a config change invalidated."),
+    force: bool = typer.Option(False, "--force", help="Redo the stages a config or code change invalidated."),
     from_stage: str = typer.Option(None, "--from-stage", help="Redo this stage and everything after it."),
+    keep_outputs: bool = typer.Option(False, "--keep-outputs", help=KEEP_OUTPUTS_HELP),
 ) -> None:
     """Run (or resume) the data stages: rollout → anchors → render → features → write."""
     from anchordp3.pipeline.report import data_summary
@@ -113,7 +118,7 @@ def run(
     from anchordp3.schemas.run import load_run_config
 
     cfg = load_run_config(config)
-    run_pipeline(cfg, run_dir, _run_options(stages, workers, address, force, from_stage), say=lambda m: typer.echo(m, err=True))
+    run_pipeline(cfg, run_dir, _run_options(stages, workers, address, force, from_stage, keep_outputs), say=lambda m: typer.echo(m, err=True))
     typer.echo(data_summary(run_dir))
 
 
@@ -125,7 +130,8 @@ def stage(
     config: Path = typer.Option(None, help="Run config (default: the run directory's config.yaml)."),
     workers: int = typer.Option(None, min=1, help="Actors in the pool (overrides the config)."),
     address: str = typer.Option(None, help="Ray cluster to join: auto or ray://HOST:PORT."),
-    force: bool = typer.Option(False, "--force", help="Redo the stage if a config change invalidated it."),
+    force: bool = typer.Option(False, "--force", help="Redo the stage if a config or code change invalidated it."),
+    keep_outputs: bool = typer.Option(False, "--keep-outputs", help=KEEP_OUTPUTS_HELP),
 ) -> None:
     """Run one data stage alone; its input stage must be complete."""
     from anchordp3.pipeline.report import data_summary
@@ -133,7 +139,7 @@ def stage(
     from anchordp3.schemas.run import load_run_config
 
     cfg = load_run_config(config or run_dir / CONFIG_FILE)
-    run_pipeline(cfg, run_dir, _run_options(name, workers, address, force, None), say=lambda m: typer.echo(m, err=True))
+    run_pipeline(cfg, run_dir, _run_options(name, workers, address, force, None, keep_outputs), say=lambda m: typer.echo(m, err=True))
     typer.echo(data_summary(run_dir))
 
 

@@ -29,7 +29,7 @@ import torch  # noqa: E402
 
 from anchordp3.models.kernels import reference_kernels  # noqa: E402
 from anchordp3.pipeline.evaluation import EvalOptions, eval_run_config, models_folder  # noqa: E402
-from anchordp3.schemas.training import task_id  # noqa: E402
+from anchordp3.schemas.tasks import task_id  # noqa: E402
 from anchordp3.sim.closed_loop import EvalEpisode  # noqa: E402
 from anchordp3.stages.evaluate import EvalModels, frames_dict  # noqa: E402
 from anchordp3.stages.features import frame_features  # noqa: E402

@@ -33,9 +33,8 @@ import zarr
 from anchordp3.dataset.reader import SAMPLE_ARRAYS, open_dataset
 from anchordp3.dataset.torch_data import SplitDataset, make_loader
 from anchordp3.schemas.dataset import WriteConfig
-from anchordp3.stages.files import save_npz
+from anchordp3.stages.files import features_file, save_npz
 from anchordp3.stages.write import (
-    features_file,
     finalize,
     plan_tasks,
     shard_plan,

@@ -21,129 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from anchordp3.schemas.training import TASK_NAMES, InstructionConfig
+from anchordp3.schemas.tasks import TASK_NAMES, TaskPhrases, task_spec
+from anchordp3.schemas.training import InstructionConfig
 
 Split = str  # "train" or "val"
-
-
-# ------------------------------------------------------------------------------------ vocabulary
-@dataclass(frozen=True)
-class TaskPhrases:
-    """The words one task can be described with. ``verbs`` are (base, past participle) pairs;
-    ``goals`` carry their preposition ("onto the scale"); ``targets`` are bare goal nouns for
-    terse commands; ``why`` are purpose clauses; ``plural`` picks it/them, is/are, ..."""
-
-    nouns: tuple[str, ...]
-    verbs: tuple[tuple[str, str], ...]
-    picks: tuple[str, ...]
-    goals: tuple[str, ...]
-    targets: tuple[str, ...]
-    why: tuple[str, ...]
-    plural: bool = False
-    dets: tuple[str, ...] = ("the",)
-    sizes: tuple[str, ...] = ("",)
-    colours: tuple[str, ...] = ("",)
-
-
-_PLACE = (("place", "placed"), ("put", "put"), ("set", "set"), ("move", "moved"), ("lay", "laid"),
-          ("position", "positioned"), ("rest", "rested"), ("drop", "dropped"))
-_PICK = ("pick up", "grab", "take", "lift", "grasp", "get", "pick")
-_SCALE_GOALS = ("on the electronic scale", "onto the electronic scale", "on the scale", "onto the scale",
-                "onto the digital scale", "on top of the weighing scale", "on the scale's pad",
-                "onto the kitchen scale", "on the weighing platform", "onto the pad of the scale")
-_SCALE_TARGETS = ("scale", "electronic scale", "digital scale", "weighing scale", "the scale")
-_SCALE_WHY = ("so it can be weighed", "so we can weigh it", "to weigh it", "to check its weight",
-              "so I can see how heavy it is", "for weighing")
-_SIZES = ("", "small", "little", "compact")
-_BLOCK_NOUNS = ("red, green and blue blocks", "red, green, and blue cubes", "three coloured blocks",
-                "three colored blocks", "RGB blocks", "three blocks", "coloured cubes", "blocks",
-                "red, blue and green blocks", "three cubes")
-
-TASK_PHRASES: dict[str, TaskPhrases] = {
-    "place_mouse": TaskPhrases(
-        nouns=("mouse", "computer mouse", "wireless mouse", "PC mouse", "optical mouse", "mouse device"),
-        verbs=_PLACE, picks=_PICK, goals=_SCALE_GOALS, targets=_SCALE_TARGETS, why=_SCALE_WHY,
-        dets=("the", "that", "this"), sizes=_SIZES,
-        colours=("", "black", "white", "grey", "gray", "blue", "red", "pink"),
-    ),
-    "place_stapler": TaskPhrases(
-        nouns=("stapler", "office stapler", "desk stapler", "paper stapler", "stapling tool", "staple gun"),
-        verbs=_PLACE, picks=_PICK, goals=_SCALE_GOALS, targets=_SCALE_TARGETS, why=_SCALE_WHY,
-        dets=("the", "that", "this"), sizes=_SIZES, colours=("", "black", "red", "blue", "green", "grey", "gray"),
-    ),
-    "place_bell": TaskPhrases(
-        nouns=("bell", "service bell", "desk bell", "call bell", "counter bell", "reception bell", "hotel bell"),
-        verbs=_PLACE, picks=_PICK, goals=_SCALE_GOALS, targets=_SCALE_TARGETS, why=_SCALE_WHY,
-        dets=("the", "that", "this"), sizes=_SIZES, colours=("", "silver", "gold", "golden", "copper", "shiny"),
-    ),
-    "blocks_ranking_rgb": TaskPhrases(
-        nouns=_BLOCK_NOUNS, plural=True,
-        verbs=(("arrange", "arranged"), ("line up", "lined up"), ("sort", "sorted"), ("order", "ordered"),
-               ("rank", "ranked"), ("put", "put"), ("lay out", "laid out"), ("place", "placed")),
-        picks=("pick up", "grab", "take", "move"),
-        goals=("in a row from left to right as red, green, blue", "in red-green-blue order from left to right",
-               "left to right in the order red, green, blue", "in RGB order from left to right",
-               "in a line with red on the left, green in the middle and blue on the right",
-               "so they read red, green, blue from left to right", "side by side in the order red, green, blue",
-               "in a horizontal row, red first, then green, then blue"),
-        targets=("row in RGB order", "left to right R G B", "red-green-blue row", "RGB line", "row, red to blue"),
-        why=("so the colours are in order", "to sort them by colour", "so they are ranked by colour",
-             "so the row reads RGB"),
-        dets=("the", "these", "those", "all the"), sizes=("", "small", "little", "toy"),
-    ),
-    "stack_blocks_three": TaskPhrases(
-        nouns=_BLOCK_NOUNS, plural=True,
-        verbs=(("stack", "stacked"), ("pile", "piled"), ("pile up", "piled up"), ("put", "put"),
-               ("place", "placed"), ("build", "built"), ("assemble", "assembled")),
-        picks=("pick up", "grab", "take", "lift"),
-        goals=("on top of each other", "into a tower", "into a single stack", "one on top of another",
-               "with red at the bottom, green in the middle and blue on top",
-               "into a tower: red, then green, then blue", "into a three-block tower at the target spot",
-               "into one pile, red first and blue last", "vertically at the target spot"),
-        targets=("tower", "stack", "one tower", "red-green-blue tower", "single pile"),
-        why=("to build a tower", "so they form a tower", "to make a stack", "so only one pile is left"),
-        dets=("the", "these", "those", "all the"), sizes=("", "small", "little", "toy"),
-    ),
-    "place_dual_shoes": TaskPhrases(
-        nouns=("shoes", "pair of shoes", "two shoes", "sneakers", "pair of sneakers", "trainers",
-               "left and right shoes", "footwear"),
-        plural=True,
-        verbs=(("place", "placed"), ("put", "put"), ("set", "set"), ("line up", "lined up"),
-               ("arrange", "arranged"), ("move", "moved"), ("align", "aligned")),
-        picks=("pick up", "grab", "take", "lift"),
-        goals=("side by side at the target", "next to each other at their target spots", "neatly at the marked spots",
-               "together on the mat", "at their targets, toes pointing forward", "as a pair in the middle of the table",
-               "upright at the target area", "paired up at the goal positions"),
-        targets=("target spots", "side by side", "mat", "their targets", "a neat pair"),
-        why=("so they are tidy", "to tidy them up", "so they form a neat pair", "so they're ready to wear"),
-        dets=("the", "these", "those", "my"), sizes=("", "little"), colours=("", "black", "white", "brown", "grey"),
-    ),
-    "put_bottles_dustbin": TaskPhrases(
-        nouns=("bottles", "plastic bottles", "empty bottles", "drink bottles", "water bottles", "soda bottles",
-               "three bottles", "used bottles"),
-        plural=True,
-        verbs=(("put", "put"), ("throw", "thrown"), ("drop", "dropped"), ("toss", "tossed"), ("place", "placed"),
-               ("move", "moved"), ("dump", "dumped"), ("discard", "discarded")),
-        picks=("pick up", "grab", "collect", "take", "gather"),
-        goals=("into the dustbin", "in the dustbin", "in the trash can", "into the bin", "in the wastebasket",
-               "into the garbage can", "into the rubbish bin", "in the recycling bin", "into the waste bin"),
-        targets=("dustbin", "bin", "trash", "trash can", "garbage", "recycling"),
-        why=("to clean up the table", "to tidy the table", "for recycling", "so the table is clear"),
-        dets=("the", "all the", "all of the", "these", "those"), sizes=("", "small"),
-    ),
-    "place_phone_stand": TaskPhrases(
-        nouns=("phone", "smartphone", "mobile phone", "cell phone", "cellphone", "mobile", "handset"),
-        verbs=(("place", "placed"), ("put", "put"), ("set", "set"), ("rest", "rested"), ("lean", "leaned"),
-               ("mount", "mounted"), ("stand", "stood"), ("position", "positioned")),
-        picks=_PICK,
-        goals=("on the phone stand", "onto the stand", "on the phone holder", "onto the phone dock",
-               "into the phone holder", "on the charging stand", "against the stand", "upright on the stand",
-               "on the little stand", "onto its stand"),
-        targets=("stand", "phone stand", "holder", "dock", "phone holder"),
-        why=("so it can charge", "so it stands upright", "so I can see the screen", "so it doesn't lie flat"),
-        dets=("the", "that", "this", "my"), sizes=_SIZES, colours=("", "black", "white", "silver", "blue"),
-    ),
-}
 
 
 # -------------------------------------------------------------------------------------- families
@@ -268,7 +149,7 @@ def _generate(config: InstructionConfig) -> InstructionBank:
     rows: list[tuple[str, str, str]] = []
     for t, task in enumerate(TASK_NAMES):
         rng = np.random.default_rng([config.seed, 2, t])
-        phrases = TASK_PHRASES[task]
+        phrases = task_spec(task).phrases
         done: Counter[str] = Counter()
         stalled: Counter[str] = Counter()
         made = 0
@@ -290,7 +171,7 @@ def _generate(config: InstructionConfig) -> InstructionBank:
             made += 1
             rows.append((text, task, family.name))
     instructions = tuple(
-        Instruction(index=i, text=text, task=task, task_id=TASK_NAMES.index(task), family=fam,
+        Instruction(index=i, text=text, task=task, task_id=task_spec(task).task_id, family=fam,
                     split="val" if fam in val else "train")
         for i, (text, task, fam) in enumerate(rows)
     )

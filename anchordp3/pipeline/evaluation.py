@@ -10,7 +10,6 @@ and ``report.md``.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
@@ -22,6 +21,7 @@ import ray
 
 import anchordp3
 from anchordp3.dataset.files import file_sha256
+from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.runner import ensure_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
@@ -33,7 +33,7 @@ EVAL_DIR = "eval"
 STAGE = "evaluate"
 SEED_OFFSET = 1000
 MODEL_NAMES = ("segmenter", "classifier", "policy")
-PROTOCOL_MODULES = ("anchordp3.stages.evaluate", "anchordp3.sim.closed_loop")
+PROTOCOL_MODULE = "anchordp3.stages.evaluate"  # the decision loop and how a prediction is carried out
 EXECUTE_THROUGH = ("pose", "joints")  # stages.evaluate.EXECUTE_THROUGH, without importing the simulator
 
 
@@ -177,17 +177,6 @@ class EvalWorker:
         return evaluate_episode(task, seed, self.models, self.cfg, max_decisions, path, through).to_dict()
 
 
-def protocol_digest() -> str:
-    """Digest of the code that defines the evaluation protocol (the decision loop and how a
-    prediction is carried out): a change to it makes earlier evaluation records stale."""
-    from importlib.util import find_spec
-
-    h = hashlib.sha256()
-    for name in PROTOCOL_MODULES:  # read, not imported: the driver stays free of the simulator
-        h.update(Path(find_spec(name).origin).read_bytes())
-    return h.hexdigest()[:16]
-
-
 def check_models(models_dir: Path) -> None:
     """Every model file of ``models_dir`` is a readable checkpoint of its kind: bad input gets a
     one-line error naming the file here, in the driver, not a traceback from an actor."""
@@ -203,7 +192,7 @@ def check_models(models_dir: Path) -> None:
 
 
 def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprint:
-    upstream = {"protocol": protocol_digest()}
+    upstream = {}
     check_models(models_dir)
     for name in MODEL_NAMES:
         upstream[name] = file_sha256(Path(models_dir) / name / "model.pt")[:16]
@@ -211,7 +200,8 @@ def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerp
             "max_decisions": opts.max_decisions, "through": opts.through, "plan": cfg.anchors.plan, "dense": cfg.anchors.dense.model_dump(mode="json")}
     if opts.ddim_steps is not None:  # only when set: evaluations with the policy's own steps keep their fingerprint
         part["ddim_steps"] = opts.ddim_steps
-    return Fingerprint(code_version=anchordp3.__version__, config_hash=config_hash(part), upstream=upstream)
+    return Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([PROTOCOL_MODULE]),  # read, not imported: the driver stays free of the simulator
+                       config_hash=config_hash(part), upstream=upstream)
 
 
 def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg: RunConfig | None = None,

@@ -35,7 +35,7 @@ from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.dataset import INFO_FILE
 from anchordp3.schemas.export import ExportFormat, ExportResult
 from anchordp3.schemas.run import RunConfig, load_run_config
-from anchordp3.stages.render import frames_file
+from anchordp3.stages.files import frames_file
 
 log = logging.getLogger(__name__)
 

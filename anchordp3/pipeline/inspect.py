@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from anchordp3.pipeline.runner import CONFIG_FILE, fingerprints
 from anchordp3.pipeline.store import JOURNAL, MANIFEST, read_manifest
 from anchordp3.pipeline.work import STAGE_DIRS, stage_dir
-from anchordp3.schemas.manifest import ItemRecord, StageManifest
+from anchordp3.schemas.manifest import Fingerprint, ItemRecord, StageManifest
 from anchordp3.schemas.run import DATA_STAGES, RunConfig, load_run_config
 from anchordp3.viz.table import text_table
 
@@ -38,7 +38,8 @@ class StageStatus(BaseModel):
     complete: bool = Field(default=False, description="Every planned item has a record.")
     seconds: float = Field(default=0.0, description="Sum of the items' compute seconds.")
     fingerprint: str | None = Field(default=None, description="Digest of the stored fingerprint.")
-    stale: bool | None = Field(default=None, description="Stored fingerprint differs from what the run's config.yaml gives (None: unknown).")
+    stale: bool | None = Field(default=None, description="Stored fingerprint differs from what the run's config.yaml and this code give (None: unknown).")
+    changed: list[str] = Field(default_factory=list, description="What differs when stale: code, config, upstream <stage> (Fingerprint.changes).")
 
 
 def check_run_dir(run_dir: Path) -> Path:
@@ -77,18 +78,16 @@ def run_config(run_dir: Path) -> RunConfig | None:
     return load_run_config(path) if path.is_file() else None
 
 
-def expected_digests(run_dir: Path) -> dict[str, str] | None:
-    """Fingerprint digest each stage should have under the run's config.yaml (None: no config)."""
+def expected_fingerprints(run_dir: Path) -> dict[str, Fingerprint] | None:
+    """The fingerprint each stage should have under the run's config.yaml and this code (None: no config)."""
     cfg = run_config(run_dir)
-    if cfg is None:
-        return None
-    return {s: fp.digest() for s, fp in fingerprints(cfg).items()}
+    return None if cfg is None else fingerprints(cfg)
 
 
 def run_status(run_dir: Path) -> list[StageStatus]:
     """One ``StageStatus`` per data stage, in pipeline order."""
     run_dir = check_run_dir(run_dir)
-    want = expected_digests(run_dir)
+    want = expected_fingerprints(run_dir)
     out = []
     for s in DATA_STAGES:
         d = stage_dir(run_dir, s)
@@ -100,7 +99,8 @@ def run_status(run_dir: Path) -> list[StageStatus]:
         c = m.counts
         out.append(StageStatus(stage=s, folder=STAGE_DIRS[s], ran=True, done=c.done, failed=c.failed, planned=c.planned,
                                complete=m.complete, seconds=c.seconds, fingerprint=digest,
-                               stale=None if want is None else digest != want[s]))
+                               stale=None if want is None else digest != want[s].digest(),
+                               changed=[] if want is None else m.fingerprint.changes(want[s])))
     return out
 
 
@@ -111,10 +111,10 @@ def status_table(statuses: list[StageStatus]) -> str:
         if not st.ran:
             rows.append([st.stage, "-", "-", "-", "not run", "-", "-", "-"])
             continue
-        stale = "?" if st.stale is None else ("STALE" if st.stale else "current")
+        stale = "?" if st.stale is None else (f"STALE({','.join(c.split()[0] for c in st.changed)})" if st.stale else "current")
         rows.append([st.stage, st.done, st.failed, st.planned, "complete" if st.complete else "incomplete",
                      f"{st.seconds:.1f}", st.fingerprint, stale])
-    return text_table(["stage", "done", "failed", "planned", "state", "compute s", "fingerprint", "vs config"], rows)
+    return text_table(["stage", "done", "failed", "planned", "state", "compute s", "fingerprint", "vs config and code"], rows)
 
 
 def run_overview(run_dir: Path) -> str:
@@ -167,15 +167,16 @@ def stage_report(run_dir: Path, stage: str, limit: int = 50) -> str:
     st = next(s for s in run_status(run_dir) if s.stage == stage)
     c = m.counts
     fp = m.fingerprint
-    stale = "unknown (no config.yaml)" if st.stale is None else ("STALE: the run's config.yaml gives another" if st.stale else "current")
+    stale = ("unknown (no config.yaml)" if st.stale is None
+             else (f"STALE: {', '.join(st.changed)} changed" if st.stale else "current"))
     lines = [f"stage {stage} ({stage_dir(run_dir, stage)}): {'complete' if m.complete else 'incomplete'}",
              "",
              text_table(["planned", "done", "failed", "compute s", "mean s/item"],
                         [[c.planned, c.done, c.failed, f"{c.seconds:.1f}",
                           f"{c.seconds / len(m.items):.2f}" if m.items else "-"]]),
              "",
-             text_table(["fingerprint", "code version", "config hash", "upstream", "vs config"],
-                        [[fp.digest(), fp.code_version, fp.config_hash[:16],
+             text_table(["fingerprint", "code version", "code hash", "config hash", "upstream", "vs config and code"],
+                        [[fp.digest(), fp.code_version, fp.code_hash[:16] or "-", fp.config_hash[:16],
                           ", ".join(f"{k}:{v}" for k, v in fp.upstream.items()) or "-", stale]])]
     slow = sorted(m.items.values(), key=lambda r: r.seconds, reverse=True)[:SLOWEST]
     if slow:

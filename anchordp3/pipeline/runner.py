@@ -25,9 +25,10 @@ import yaml
 import anchordp3
 from anchordp3.dataset.files import file_sha256
 from anchordp3.pipeline.actors import FAULTS_ENV, StageWorker
+from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.lock import RunLock
 from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_manifest
-from anchordp3.pipeline.work import stage_dir
+from anchordp3.pipeline.work import STAGE_CODE, stage_dir
 from anchordp3.schemas.dataset import ShardMember, ShardRecord
 from anchordp3.schemas.episode import episode_id
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
@@ -53,32 +54,50 @@ class RunOptions:
     workers: int | None = None          # overrides every pool's size
     address: str | None = None          # None: a local Ray; "auto" or "ray://…": join a cluster
     force: bool = False                 # redo stages whose fingerprint changed
+    keep_outputs: bool = False          # keep outputs that only other code made (same config): adopt them
     from_stage: str | None = None       # redo this stage and everything downstream
     progress_interval: float | None = None  # seconds between progress lines (None: 2 on a terminal, 15 in a log)
     faults: str = field(default_factory=lambda: os.environ.get(FAULTS_ENV, ""))
 
 
 def fingerprints(cfg: RunConfig) -> dict[str, Fingerprint]:
-    """Each data stage's fingerprint: code version, its config part, its upstream's digest."""
+    """Each data stage's fingerprint: code version and hash, its config part, its upstream's digest."""
     out: dict[str, Fingerprint] = {}
     prev = None
     for s in DATA_STAGES:
         up = {prev: out[prev].digest()} if prev else {}
-        out[s] = Fingerprint(code_version=anchordp3.__version__, config_hash=config_hash(cfg.stage_config(s)), upstream=up)
+        out[s] = Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([STAGE_CODE[s]]),
+                             config_hash=config_hash(cfg.stage_config(s)), upstream=up)
         prev = s
     return out
 
 
-def stale_stages(cfg: RunConfig, run_dir: Path) -> list[str]:
-    """Stages whose stored outputs were made with another fingerprint than ``cfg`` gives."""
+def stage_changes(cfg: RunConfig, run_dir: Path) -> dict[str, list[str]]:
+    """Stages whose stored outputs were made with another fingerprint than ``cfg`` (and this code)
+    gives, in pipeline order, each with what changed (``Fingerprint.changes``)."""
     fps = fingerprints(cfg)
-    out = []
+    out = {}
     for s in DATA_STAGES:
         d = stage_dir(run_dir, s)
         m = read_manifest(d) if d.exists() else None
-        if m is not None and m.fingerprint != fps[s]:
-            out.append(s)
+        if m is not None and (changed := m.fingerprint.changes(fps[s])):
+            out[s] = changed
     return out
+
+
+def adoptable(changes: dict[str, list[str]]) -> list[str]:
+    """The changed stages whose outputs ``--keep-outputs`` keeps: those whose config is the same and
+    whose upstream changed only where an adopted stage did (only code differs along the way)."""
+    kept: list[str] = []
+    for s, changed in changes.items():
+        if all(c == "code" or (c.startswith("upstream ") and c.split(" ", 1)[1] in kept) for c in changed):
+            kept.append(s)
+    return kept
+
+
+def describe_changes(changes: dict[str, list[str]]) -> str:
+    """``render (code), features (upstream render)``."""
+    return ", ".join(f"{s} ({', '.join(c)})" for s, c in changes.items())
 
 
 class _Stats:
@@ -158,19 +177,26 @@ class Runner:
 
     # ----------------------------------------------------------------------------- setup
     def open_stores(self) -> dict[str, ManifestStore]:
-        stale = stale_stages(self.cfg, self.run_dir)
+        changes = stage_changes(self.cfg, self.run_dir)
         redo: set[str] = set()
         if self.opts.from_stage:
             redo |= set(DATA_STAGES[DATA_STAGES.index(self.opts.from_stage):])
         if self.opts.force:
-            redo |= set(stale)
-        left = [s for s in stale if s not in redo]
+            redo |= set(changes)
+        keep = set(adoptable({s: c for s, c in changes.items() if s not in redo})) if self.opts.keep_outputs else set()
+        left = {s: c for s, c in changes.items() if s not in redo and s not in keep}
         if left:
-            first = left[0]
+            code_only = all("config" not in c for c in left.values())
+            hint = ("--force to redo them, or --keep-outputs to keep what the old code made" if code_only
+                    else f"--force, or --from-stage {next(iter(left))}")
             raise StaleStageError(
-                f"{self.run_dir}: the config changed for stage(s) {', '.join(stale)} (and what depends on them); "
-                f"refusing to mix old and new outputs: rerun with --force, or --from-stage {first}")
-        return {s: ManifestStore(stage_dir(self.run_dir, s), s, self.fps[s], reset=s in redo) for s in DATA_STAGES}
+                f"{self.run_dir}: stage(s) {describe_changes(left)} were made with another "
+                f"{'code' if code_only else 'config or code'} than now; refusing to mix old and new outputs: rerun with {hint}")
+        for s in DATA_STAGES:
+            if s in keep:
+                self.say(f"{s}: keeping the outputs other code made ({', '.join(changes[s])}), as --keep-outputs asks")
+        return {s: ManifestStore(stage_dir(self.run_dir, s), s, self.fps[s], reset=s in redo, adopt=s in keep)
+                for s in DATA_STAGES}
 
     def check_inputs(self, stores: dict[str, ManifestStore]) -> None:
         """A stage run without its upstream must find the upstream complete."""

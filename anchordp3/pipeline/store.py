@@ -76,20 +76,27 @@ class ManifestStore:
     """The manifest of one stage of one run, opened for writing.
 
     fingerprint: what the outputs about to be written depend on. Opening a stage whose stored
-    fingerprint differs raises ``StaleStageError`` unless ``reset`` (then its folder is emptied)."""
+    fingerprint differs raises ``StaleStageError`` unless ``reset`` (then its folder is emptied) or
+    ``adopt`` (the records are kept and the manifest takes ``fingerprint``, durably, at once)."""
 
-    def __init__(self, stage_dir: Path, stage: str, fingerprint: Fingerprint, reset: bool = False):
+    def __init__(self, stage_dir: Path, stage: str, fingerprint: Fingerprint, reset: bool = False, adopt: bool = False):
         self.dir, self.stage, self.fingerprint = Path(stage_dir), stage, fingerprint
         existing = read_manifest(self.dir) if self.dir.exists() else None
+        adopted = False
         if existing is not None and existing.fingerprint != fingerprint:
-            if not reset:
+            if not (reset or adopt):
                 raise StaleStageError(f"stage {stage}: its outputs were made with a different config or code version")
-            existing = None
+            if reset:
+                existing = None
+            else:
+                existing.fingerprint, adopted = fingerprint, True
         if reset and self.dir.exists():
             shutil.rmtree(self.dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.manifest = existing or StageManifest(stage=stage, fingerprint=fingerprint)
         self._journal = None
+        if adopted:
+            self.compact(existing.counts.planned, existing.complete)
 
     @property
     def items(self) -> dict[str, ItemRecord]:

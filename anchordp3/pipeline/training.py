@@ -31,6 +31,7 @@ import anchordp3
 from anchordp3.dataset.files import file_sha256
 from anchordp3.dataset.reader import ShardedDataset, open_dataset
 from anchordp3.models.device import pick_device
+from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.lock import RunLock
 from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_manifest
 from anchordp3.pipeline.work import stage_dir
@@ -91,8 +92,8 @@ def model_config_part(cfg: TrainingConfig, name: str) -> dict:
 
 def fingerprint(cfg: TrainingConfig, name: str, upstream: dict[str, str]) -> Fingerprint:
     """Model ``name``'s fingerprint (see the module doc)."""
-    return Fingerprint(code_version=anchordp3.__version__, config_hash=config_hash(model_config_part(cfg, name)),
-                       upstream=dict(upstream))
+    return Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([f"anchordp3.stages.train_{name}"]),
+                       config_hash=config_hash(model_config_part(cfg, name)), upstream=dict(upstream))
 
 
 # ------------------------------------------------------------------------------------------ status
@@ -192,13 +193,8 @@ def _critical_channel(run_dir: Path, cfg: TrainingConfig):
 
 
 def _what_changed(old: Fingerprint, new: Fingerprint) -> str:
-    parts = []
-    if old.code_version != new.code_version:
-        parts.append(f"code version ({old.code_version} -> {new.code_version})")
-    if old.config_hash != new.config_hash:
-        parts.append("training config")
-    parts += [f"{k}" for k in sorted(set(old.upstream) | set(new.upstream)) if old.upstream.get(k) != new.upstream.get(k)]
-    return " and ".join(parts) or "fingerprint"
+    words = {"code": "code", "config": "training config"}
+    return " and ".join(words.get(c, c.removeprefix("upstream ")) for c in old.changes(new)) or "fingerprint"
 
 
 def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDataset | None, device: torch.device,

@@ -13,9 +13,10 @@ from anchordp3.dataset.files import file_sha256
 from anchordp3.schemas.dataset import ShardMember
 from anchordp3.schemas.episode import EpisodeRecord
 from anchordp3.schemas.run import RunConfig
-from anchordp3.stages.anchors import load_plan, plan_file, run_anchors
+from anchordp3.stages.anchors import load_plan, run_anchors
 from anchordp3.stages.features import run_features
-from anchordp3.stages.render import frames_file, run_render
+from anchordp3.stages.files import frames_file, plan_file
+from anchordp3.stages.render import run_render
 from anchordp3.stages.rollout import rollout
 from anchordp3.stages.write import write_shard
 
@@ -76,3 +77,7 @@ def _write(run: Path, cfg: RunConfig, item: dict) -> dict:
 
 
 _STAGES = {"rollout": _rollout, "anchors": _anchors, "render": _render, "features": _features, "write": _write}
+
+# The module whose code (with all it imports) makes each stage's outputs: its fingerprint's code_hash.
+STAGE_CODE = {"rollout": rollout.__module__, "anchors": run_anchors.__module__, "render": run_render.__module__,
+              "features": run_features.__module__, "write": write_shard.__module__}

@@ -16,8 +16,21 @@ class Fingerprint(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     code_version: str = Field(description="anchordp3 version that wrote the outputs.")
+    code_hash: str = Field(default="", description="sha256 of the package modules that produced the outputs "
+                                                  "(pipeline.codehash; empty: made before code was fingerprinted).")
     config_hash: str = Field(description="sha256 of the stage's part of the run config.")
     upstream: dict[str, str] = Field(default_factory=dict, description="Upstream stage name → its fingerprint digest.")
+
+    def changes(self, new: Fingerprint) -> list[str]:
+        """What differs from ``new``: ``code``, ``config`` and ``upstream <name>`` per upstream, in that
+        order; empty when the two are equal."""
+        out = []
+        if (self.code_version, self.code_hash) != (new.code_version, new.code_hash):
+            out.append("code")
+        if self.config_hash != new.config_hash:
+            out.append("config")
+        out += [f"upstream {k}" for k in sorted(set(self.upstream) | set(new.upstream)) if self.upstream.get(k) != new.upstream.get(k)]
+        return out
 
     def digest(self) -> str:
         """A short hash of this fingerprint (what downstream stages record)."""

@@ -5,8 +5,9 @@ Defaults are small enough to train on a CPU; ``training_preset("report")`` gives
 sizes for a GPU (U-Net ``[512, 1024, 2048]``, a deeper PointNet++, batch 128). DP3's settings
 (REFERENCE.md) are the defaults of the diffusion scheduler, EMA and optimizer.
 
-Model task ids are positions in ``TASK_NAMES``: the policy's encoder index and the classifier's
-logit index. A dataset numbering its tasks differently maps through ``model_task_ids``.
+Model task ids come from the task registry (``schemas/tasks.py``): the policy's encoder index and
+the classifier's logit index. A dataset numbering its tasks differently maps through
+``model_task_ids``.
 """
 
 from __future__ import annotations
@@ -17,25 +18,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-TASK_NAMES: tuple[str, ...] = (
-    "place_mouse",
-    "place_stapler",
-    "place_bell",
-    "blocks_ranking_rgb",
-    "stack_blocks_three",
-    "place_dual_shoes",
-    "put_bottles_dustbin",
-    "place_phone_stand",
-)
-"""The 8 task categories (``place_object_scale`` split into mouse / stapler / bell); index = task id."""
-
-
-def task_id(name: str) -> int:
-    """The integer id of task ``name`` (its index in ``TASK_NAMES``); a clear error lists the names."""
-    try:
-        return TASK_NAMES.index(name)
-    except ValueError:
-        raise ValueError(f"task: unknown task {name!r}; choose one of {list(TASK_NAMES)}") from None
+from anchordp3.schemas.tasks import TASK_NAMES, task_id
 
 
 def model_task_ids(dataset_tasks: Sequence[str]) -> list[int]:

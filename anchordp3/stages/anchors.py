@@ -37,7 +37,7 @@ import pyarrow.parquet as pq
 from anchordp3.schemas.episode import EpisodeRecord
 from anchordp3.schemas.stages import AnchorsConfig, KinematicTagConfig
 from anchordp3.schemas.state import ARMS, StateLayout
-from anchordp3.stages.files import atomic_write_bytes
+from anchordp3.stages.files import atomic_write_bytes, plan_file
 from anchordp3.stages.rollout import load_episode
 
 PLAN_COLUMNS = {
@@ -267,11 +267,6 @@ def _plan_table(rows: list[dict], anchors: Anchors, cfg: AnchorsConfig) -> pa.Ta
     meta = {"anchors": json.dumps({"t": anchors.t.tolist(), "names": anchors.names, "arms": anchors.arms,
                                    "source": cfg.source, "plan": cfg.plan, "horizon": H, "state_dim": D})}
     return table.replace_schema_metadata(meta)
-
-
-def plan_file(task: str, seed: int) -> str:
-    """Path of an episode's frame plan relative to the stage folder."""
-    return f"plans/{task}/{seed:06d}.parquet"
 
 
 def table_bytes(table: pa.Table) -> bytes:

@@ -35,7 +35,7 @@ from anchordp3.models.instructions import episode_instruction
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.stages import AnchorsConfig
 from anchordp3.schemas.state import ARMS
-from anchordp3.schemas.training import TASK_NAMES, task_id
+from anchordp3.schemas.tasks import TASK_NAMES, task_id
 from anchordp3.sim.closed_loop import EvalEpisode, Observation
 from anchordp3.sim.tasks.base import LayoutFailure
 from anchordp3.stages.features import frame_features

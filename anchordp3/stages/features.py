@@ -22,13 +22,8 @@ import numpy as np
 from anchordp3.geometry.features import point_features
 from anchordp3.geometry.pointcloud import Cloud, backproject, fuse_views, table_top_height
 from anchordp3.schemas.stages import FeaturesConfig
-from anchordp3.stages.files import save_npz
+from anchordp3.stages.files import features_file, save_npz
 from anchordp3.stages.render import load_frames
-
-
-def features_file(task: str, seed: int) -> str:
-    """Path of an episode's point-cloud features relative to the stage folder."""
-    return f"features/{task}/{seed:06d}.npz"
 
 
 def frame_cloud(frames: dict[str, np.ndarray], i: int, cfg: FeaturesConfig) -> Cloud:

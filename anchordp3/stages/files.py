@@ -1,4 +1,4 @@
-"""Durable, deterministic file writes: temporary name, fsync, rename."""
+"""Durable, deterministic file writes (temporary name, fsync, rename) and where each episode stage's files lie."""
 
 from __future__ import annotations
 
@@ -10,6 +10,24 @@ from pathlib import Path
 import numpy as np
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)  # fixed zip timestamps: the same arrays give the same bytes
+
+
+# Where each episode stage puts an episode's output, relative to the stage folder. They live here, in
+# a module that imports nothing of the package, so that a stage naming another's files does not
+# take on that stage's code (and its code fingerprint).
+def plan_file(task: str, seed: int) -> str:
+    """Path of an episode's frame plan (anchors stage)."""
+    return f"plans/{task}/{seed:06d}.parquet"
+
+
+def frames_file(task: str, seed: int) -> str:
+    """Path of an episode's rendered frames (render stage)."""
+    return f"frames/{task}/{seed:06d}.npz"
+
+
+def features_file(task: str, seed: int) -> str:
+    """Path of an episode's point-cloud features (features stage)."""
+    return f"features/{task}/{seed:06d}.npz"
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -26,15 +26,10 @@ from anchordp3.schemas.sim import WorldConfig
 from anchordp3.schemas.stages import FRAME_KINDS, AnchorsConfig, RenderConfig
 from anchordp3.sim.frames import FrameRequest, render_frames
 from anchordp3.stages.anchors import load_plan
-from anchordp3.stages.files import save_npz
+from anchordp3.stages.files import frames_file, save_npz
 from anchordp3.stages.rollout import load_episode
 
 REPLAY_TOLERANCE = 1e-5  # largest |replayed - recorded| state difference accepted
-
-
-def frames_file(task: str, seed: int) -> str:
-    """Path of an episode's rendered frames relative to the stage folder."""
-    return f"frames/{task}/{seed:06d}.npz"
 
 
 def run_render(record: EpisodeRecord, rollout_dir: Path, plan_path: Path, out_dir: Path, world: WorldConfig,

@@ -21,7 +21,8 @@ from anchordp3.models.classifier import InstructionClassifier, classification_lo
 from anchordp3.models.device import autocast, needs_grad_scaler, seed_everything
 from anchordp3.models.instructions import generate_instructions
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
-from anchordp3.schemas.training import TASK_NAMES, ClassifierConfig, TrainingConfig
+from anchordp3.schemas.tasks import TASK_NAMES
+from anchordp3.schemas.training import ClassifierConfig, TrainingConfig
 from anchordp3.stages.training_loop import (
     Say,
     TrainingJob,

@@ -34,7 +34,8 @@ from anchordp3.models.optim import make_lr_schedule, make_optimizer
 from anchordp3.models.policy import AnchorDiffusionPolicy
 from anchordp3.schemas.stages import FRAME_KINDS
 from anchordp3.schemas.state import ARMS
-from anchordp3.schemas.training import TASK_NAMES, PolicyConfig, TrainingConfig, model_task_ids
+from anchordp3.schemas.tasks import TASK_NAMES
+from anchordp3.schemas.training import PolicyConfig, TrainingConfig, model_task_ids
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.train_segmenter import load_segmenter, stats_limits
 from anchordp3.stages.training_loop import (

@@ -49,11 +49,9 @@ from anchordp3.schemas.dataset import (
     WriteConfig,
 )
 from anchordp3.schemas.stages import FRAME_KINDS
-from anchordp3.stages.features import features_file
-from anchordp3.stages.files import atomic_write_bytes
+from anchordp3.stages.files import atomic_write_bytes, features_file
 
-# features_file: the features stage owns the path; re-exported here for callers of this stage.
-__all__ = ["FEATURE_ARRAYS", "features_file", "finalize", "load_features", "plan_tasks", "shard_plan", "write_shard"]
+__all__ = ["FEATURE_ARRAYS", "finalize", "load_features", "plan_tasks", "shard_plan", "write_shard"]
 
 # name -> (shape with F = frames and N = points, dtype)
 FEATURE_ARRAYS: dict[str, tuple[tuple[int | str, ...], np.dtype]] = {

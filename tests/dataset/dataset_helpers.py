@@ -7,9 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from anchordp3.schemas.dataset import WriteConfig
-from anchordp3.stages.files import save_npz
+from anchordp3.stages.files import features_file, save_npz
 from anchordp3.stages.write import (
-    features_file,
     finalize,
     plan_tasks,
     shard_plan,
@@ -74,7 +73,7 @@ def make_run(root: Path, cfg: WriteConfig, images: bool = True, failed=(("place_
     as with ``render.keep_frames: true``; pruned to steps and kinds otherwise)."""
     import yaml
 
-    from anchordp3.stages.render import frames_file
+    from anchordp3.stages.files import frames_file
 
     run = Path(root) / "run"
     build(write_features(Path(root) / "src"), run / "dataset", cfg, failed=failed)

@@ -14,7 +14,8 @@ from anchordp3.dataset import shard as shard_mod
 from anchordp3.dataset.files import tree_files
 from anchordp3.schemas.dataset import LAYOUT, WriteConfig
 from anchordp3.stages.files import save_npz
-from anchordp3.stages.write import features_file, plan_tasks, shard_plan, write_shard
+from anchordp3.stages.files import features_file
+from anchordp3.stages.write import plan_tasks, shard_plan, write_shard
 
 
 def folder_hashes(root: Path) -> dict[str, str]:

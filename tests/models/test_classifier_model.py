@@ -16,7 +16,8 @@ from anchordp3.models.classifier import (
     resolve_weights_dir,
 )
 from anchordp3.models.instructions import generate_instructions
-from anchordp3.schemas.training import TASK_NAMES, ClassifierConfig, InstructionConfig
+from anchordp3.schemas.tasks import TASK_NAMES
+from anchordp3.schemas.training import ClassifierConfig, InstructionConfig
 
 
 def test_bundled_weights_are_found_inside_site_packages() -> None:

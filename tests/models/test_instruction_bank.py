@@ -13,7 +13,8 @@ from anchordp3.models.instructions import (
     generate_instructions,
     normalise,
 )
-from anchordp3.schemas.training import TASK_NAMES, InstructionConfig
+from anchordp3.schemas.tasks import TASK_NAMES
+from anchordp3.schemas.training import InstructionConfig
 
 
 @pytest.fixture(scope="module")

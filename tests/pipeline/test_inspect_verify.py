@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 from anchordp3.cli import app
 from anchordp3.dataset.files import file_sha256, tree_files
+from anchordp3.pipeline import codehash
 from anchordp3.pipeline.inspect import failure_groups
 from anchordp3.pipeline.report import dataset_content_hash
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
@@ -77,7 +78,25 @@ def test_status_marks_stages_stale_when_config_yaml_changed(copy):
     cfg["features"]["n_points"] = 128
     (copy / "config.yaml").write_text(yaml.safe_dump(cfg))
     r = rows(cli.invoke(app, ["status", str(copy)]).output)
-    assert [r[s][7] for s in DATA_STAGES] == ["current", "current", "current", "STALE", "STALE"]
+    assert [r[s][7] for s in DATA_STAGES] == ["current", "current", "current", "STALE(config)", "STALE(upstream)"]
+
+
+def test_a_code_change_is_named_by_status_refused_by_run_and_kept_when_asked(copy, tmp_path, monkeypatch):
+    code = tmp_path / "code" / "anchordp3"
+    shutil.copytree(codehash.ROOT, code, ignore=shutil.ignore_patterns("__pycache__", "assets", "pretrained"))
+    features = code / "stages" / "features.py"
+    features.write_text(features.read_text() + "\nEDITED = True\n")  # what a developer's edit does to the hash
+    monkeypatch.setattr(codehash, "ROOT", code)
+    r = rows(cli.invoke(app, ["status", str(copy)]).output)
+    assert [r[s][7] for s in DATA_STAGES] == ["current", "current", "current", "STALE(code)", "STALE(upstream)"]
+    before = {s: read_manifest(stage_dir(copy, s)).items for s in DATA_STAGES}
+    line = one_error_line(cli.invoke(app, ["run", str(copy / "config.yaml"), "--run-dir", str(copy)]))
+    assert "features (code), write (upstream features)" in line and "--keep-outputs" in line
+    res = cli.invoke(app, ["run", str(copy / "config.yaml"), "--run-dir", str(copy), "--keep-outputs"])
+    assert res.exit_code == 0, res.output
+    r = rows(cli.invoke(app, ["status", str(copy)]).output)
+    assert all(r[s][7] == "current" for s in DATA_STAGES)
+    assert {s: read_manifest(stage_dir(copy, s)).items for s in DATA_STAGES} == before  # nothing redone
 
 
 def test_inspect_without_stage_is_the_stage_table_and_json_parses(run):

@@ -114,7 +114,7 @@ def test_injected_faults_are_retried_then_recorded_as_failed(ray_session, tmp_pa
 def test_a_changed_config_is_refused_until_forced(reference, tmp_path):
     run_pipeline(tiny(tasks=["place_mouse"], seeds="0"), tmp_path, RunOptions(progress_interval=60), say=QUIET)
     changed = tiny(tasks=["place_mouse"], seeds="0", features={"n_points": 128})
-    with pytest.raises(StaleStageError, match="features, write"):
+    with pytest.raises(StaleStageError, match=r"features \(config\), write \(upstream features\)"):
         run_pipeline(changed, tmp_path, RunOptions(progress_interval=60), say=QUIET)
     rollout_before = read_manifest(stage_dir(tmp_path, "rollout")).model_dump()
     run_pipeline(changed, tmp_path, RunOptions(force=True, progress_interval=60), say=QUIET)

@@ -23,7 +23,8 @@ from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.training import MODELS, load_training_config, model_dir, train_models
 from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.run import RunConfig
-from anchordp3.schemas.training import TrainingConfig, task_id
+from anchordp3.schemas.tasks import task_id
+from anchordp3.schemas.training import TrainingConfig
 from anchordp3.stages import training_loop
 from anchordp3.stages.train_classifier import load_classifier
 from anchordp3.stages.train_policy import CriticalChannel, PolicyJob, load_policy, train_policy

@@ -7,6 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from anchordp3.schemas.tasks import TaskSpec
 from anchordp3.sim.clutter import add_clutter
 from anchordp3.sim.expert import Expert
 from anchordp3.sim.world import World
@@ -20,14 +21,21 @@ class LayoutFailure(RuntimeError):
 class Task(ABC):
     """One manipulation task on a ``World``.
 
-    Subclasses set ``name``, ``description`` (one sentence a person would say), ``step_limit`` (control
+    Subclasses set ``spec`` (their entry in the task registry, ``schemas/tasks.py``, which gives
+    them their ``name``), ``description`` (one sentence a person would say), ``step_limit`` (control
     steps) and implement the four methods below. ``setup()`` builds the task objects, then clutter
     outside their areas (``keep_out``).
     """
 
-    name: ClassVar[str]
+    spec: ClassVar[TaskSpec]
+    name: ClassVar[str]  # spec.name, set when the class is defined
     description: ClassVar[str]
     step_limit: ClassVar[int]
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        if "spec" in cls.__dict__:
+            cls.name = cls.spec.name
 
     def __init__(self, world: World):
         self.world = world

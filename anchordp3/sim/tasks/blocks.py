@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import sapien
 
+from anchordp3.schemas.tasks import BLOCKS_RANKING_RGB, STACK_BLOCKS_THREE
 from anchordp3.sim.actors import Part
 from anchordp3.sim.expert import Expert, top_down_pose
 from anchordp3.sim.poses import HOME_FINGER_YAW, entity_yaw, grasp_yaw, yaw_pose
@@ -56,7 +57,7 @@ class _BlocksTask(Task):
 class StackBlocksThree(_BlocksTask):
     """Stack red, green and blue blocks, in that order from the bottom, at a marked spot."""
 
-    name = "stack_blocks_three"
+    spec = STACK_BLOCKS_THREE
     description = "Stack the three blocks at the target spot: red at the bottom, then green, then blue on top."
     step_limit = 2000
 
@@ -87,7 +88,7 @@ class StackBlocksThree(_BlocksTask):
 class BlocksRankingRGB(_BlocksTask):
     """Line up red, green and blue blocks from left to right (world -x to +x) in a row."""
 
-    name = "blocks_ranking_rgb"
+    spec = BLOCKS_RANKING_RGB
     description = "Put the red, green and blue blocks in a row, in that order from left to right."
     step_limit = 2000
     spacing = 0.08

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import sapien
 
+from anchordp3.schemas.tasks import PUT_BOTTLES_DUSTBIN
 from anchordp3.sim.actors import Part
 from anchordp3.sim.expert import Expert, top_down_pose
 from anchordp3.sim.poses import HOME_FINGER_YAW, held_place_pose, yaw_pose
@@ -118,7 +119,7 @@ class PutBottlesDustbin(Task):
     The bin arm lowers each bottle in upright where the bin has most room, the finger tips just
     above the rim, and lets go (a fall of a few centimetres)."""
 
-    name = "put_bottles_dustbin"
+    spec = PUT_BOTTLES_DUSTBIN
     description = "Put all the bottles into the dustbin."
     step_limit = 3000  # 3 × RoboTwin's 1000: its frames come at ~16.7 Hz (every 15 steps at 250 Hz), our control at 50 Hz
     drop_clearance = 0.025  # bottle bottom above the rim (and the bottles in the bin) when carried in, metres

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import sapien
 
+from anchordp3.schemas.tasks import PLACE_DUAL_SHOES
 from anchordp3.sim.actors import Part
 from anchordp3.sim.expert import Expert, top_down_pose
 from anchordp3.sim.poses import HOME_FINGER_YAW, entity_yaw, held_place_pose, wrap_angle, yaw_pose
@@ -87,7 +88,7 @@ def shoe_parts(size: ShoeSize, foot: str, upper_rgba: tuple[float, ...], sole_rg
 class PlaceDualShoes(Task):
     """Both arms put a pair of shoes side by side on the mat, toes pointing the mat's way."""
 
-    name = "place_dual_shoes"
+    spec = PLACE_DUAL_SHOES
     description = "Use both arms to put the pair of shoes side by side on the mat, toes pointing forward."
     step_limit = 1800  # 3 × RoboTwin's 600: its frames come at ~16.7 Hz (every 15 steps at 250 Hz), our control at 50 Hz
     position_tolerance = 0.05  # shoe origin to its target, metres (RoboTwin)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import sapien
 
+from anchordp3.schemas.tasks import PLACE_PHONE_STAND
 from anchordp3.sim.actors import Part, pose_matrix
 from anchordp3.sim.expert import Expert, top_down_pose
 from anchordp3.sim.poses import entity_yaw, grasp_yaw, wrap_angle, yaw_pose
@@ -115,7 +116,7 @@ def stand_model(rng: np.random.Generator, phone_thickness: float) -> StandModel:
 class PlacePhoneStand(Task):
     """Put the phone on the stand, leaning on its back plate."""
 
-    name = "place_phone_stand"
+    spec = PLACE_PHONE_STAND
     description = "Pick up the phone and put it on the phone stand."
     step_limit = 1200  # 3 × RoboTwin's 400: its frames come at ~16.7 Hz (every 15 steps at 250 Hz), our control at 50 Hz
     tolerance = (0.045, 0.02, 0.02)  # functional points, stand frame (across, depth, up), metres (RoboTwin)

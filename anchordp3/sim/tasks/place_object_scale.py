@@ -18,6 +18,7 @@ from typing import ClassVar
 import numpy as np
 import sapien
 
+from anchordp3.schemas.tasks import PLACE_BELL, PLACE_MOUSE, PLACE_STAPLER
 from anchordp3.sim.actors import Part, pose_matrix
 from anchordp3.sim.expert import Expert, top_down_pose
 from anchordp3.sim.poses import HOME_FINGER_YAW, entity_yaw, grasp_yaw, yaw_pose
@@ -249,7 +250,7 @@ class _PlaceOnScale(Task):
 class PlaceMouse(_PlaceOnScale):
     """Put a computer mouse on the electronic scale."""
 
-    name = "place_mouse"
+    spec = PLACE_MOUSE
     noun = "mouse"
     description = "Pick up the mouse and place it on the electronic scale."
 
@@ -260,7 +261,7 @@ class PlaceMouse(_PlaceOnScale):
 class PlaceStapler(_PlaceOnScale):
     """Put a stapler on the electronic scale."""
 
-    name = "place_stapler"
+    spec = PLACE_STAPLER
     noun = "stapler"
     description = "Pick up the stapler and place it on the electronic scale."
 
@@ -271,7 +272,7 @@ class PlaceStapler(_PlaceOnScale):
 class PlaceBell(_PlaceOnScale):
     """Put a desk bell on the electronic scale."""
 
-    name = "place_bell"
+    spec = PLACE_BELL
     noun = "bell"
     description = "Pick up the bell and place it on the electronic scale."
 

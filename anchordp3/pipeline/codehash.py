@@ -1,0 +1,115 @@
+"""What code made an output: a hash of the package modules a stage runs.
+
+A stage's fingerprint covers the source of its entry module (``anchordp3.stages.render`` for
+the render stage) and of every package module that one imports, directly or not, at the top or
+inside a function (found by reading the import statements, not by importing). Each module
+counts by its syntax tree with docstrings left out, so editing a comment, a docstring or the
+layout changes nothing, while any change to what the code does changes the hash and so marks
+the stage's outputs as made by other code.
+
+    code_hash(("anchordp3.stages.render",))  # 64 hex digits
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+from collections.abc import Iterable
+from functools import lru_cache
+from pathlib import Path
+
+import anchordp3
+
+PACKAGE = "anchordp3"
+ROOT = Path(anchordp3.__file__).resolve().parent  # the package folder whose sources are hashed
+
+
+def module_path(name: str, root: Path) -> Path | None:
+    """The source file of package module ``name`` (``anchordp3.a.b``) under ``root``, or None."""
+    parts = name.split(".")
+    if parts[0] != PACKAGE:
+        return None
+    base = root.joinpath(*parts[1:])
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def imported_modules(name: str, tree: ast.Module, root: Path) -> set[str]:
+    """Package modules that module ``name``'s source imports anywhere in it (absolute or relative)."""
+    is_package = module_path(name, root) == root.joinpath(*name.split(".")[1:]) / "__init__.py"
+    here = name.split(".") if is_package else name.split(".")[:-1]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = here[: len(here) - node.level + 1]
+                base = ".".join(anchor + ([base] if base else []))
+            found.add(base)
+            found.update(f"{base}.{a.name}" for a in node.names)  # `from pkg import module`
+    return {m for m in found if m.split(".")[0] == PACKAGE and module_path(m, root) is not None}
+
+
+def with_parents(name: str) -> list[str]:
+    """``a.b.c`` -> ``[a, a.b, a.b.c]``: importing a module runs its packages' ``__init__`` too."""
+    parts = name.split(".")
+    return [".".join(parts[: i + 1]) for i in range(len(parts))]
+
+
+def module_closure(entries: Iterable[str], root: Path | None = None) -> list[str]:
+    """Every package module that importing ``entries`` can run, sorted (root: the package folder,
+    default ``ROOT``)."""
+    root = Path(root or ROOT)
+    todo = [p for e in entries for p in with_parents(e)]
+    seen: set[str] = set()
+    while todo:
+        name = todo.pop()
+        if name in seen or module_path(name, root) is None:
+            continue
+        seen.add(name)
+        todo.extend(p for m in imported_modules(name, _parse(module_path(name, root)), root) for p in with_parents(m))
+    return sorted(seen)
+
+
+def code_hash(entries: Iterable[str], root: Path | None = None) -> str:
+    """sha256 (hex) over the docstring-free syntax trees of ``entries`` and all they import
+    (root: the package folder, default ``ROOT``)."""
+    root = Path(root or ROOT)
+    h = hashlib.sha256()
+    for name in module_closure(entries, root):
+        h.update(f"{name}\0{_digest(module_path(name, root))}\n".encode())
+    return h.hexdigest()
+
+
+def _parse(path: Path) -> ast.Module:
+    return _parsed(str(path), *_stamp(path))
+
+
+def _digest(path: Path) -> str:
+    return _digested(str(path), *_stamp(path))
+
+
+def _stamp(path: Path) -> tuple[int, int]:
+    st = path.stat()
+    return st.st_mtime_ns, st.st_size
+
+
+@lru_cache(maxsize=1024)
+def _parsed(path: str, mtime_ns: int, size: int) -> ast.Module:
+    return ast.parse(Path(path).read_bytes(), filename=path)
+
+
+@lru_cache(maxsize=1024)
+def _digested(path: str, mtime_ns: int, size: int) -> str:
+    tree = ast.parse(Path(path).read_bytes(), filename=path)  # a fresh tree: the cached one stays intact
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+                and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()

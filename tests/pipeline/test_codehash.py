@@ -1,0 +1,49 @@
+"""Code fingerprints: a stage's hash follows the code it runs and nothing else."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from anchordp3.pipeline.codehash import ROOT, code_hash, module_closure
+
+
+def package(tmp_path: Path) -> Path:
+    """A small package named like ours: ``a`` imports ``b`` inside a function, ``b`` imports
+    ``sub.c`` relatively, ``d`` stands apart."""
+    root = tmp_path / "anchordp3"
+    (root / "sub").mkdir(parents=True)
+    files = {
+        "__init__.py": "",
+        "a.py": '"""Module a."""\n\ndef f():\n    from anchordp3 import b\n    return b.g()\n',
+        "b.py": "from .sub import c\n\ndef g():\n    return c.K + 1  # one more\n",
+        "sub/__init__.py": "",
+        "sub/c.py": "K = 1\n",
+        "d.py": "import os\n",
+    }
+    for name, text in files.items():
+        (root / name).write_text(text)
+    return root
+
+
+def test_the_closure_follows_imports_anywhere_in_a_module_and_stays_in_the_package(tmp_path) -> None:
+    root = package(tmp_path)
+    assert module_closure(["anchordp3.a"], root) == ["anchordp3", "anchordp3.a", "anchordp3.b", "anchordp3.sub", "anchordp3.sub.c"]
+    assert module_closure(["anchordp3.d"], root) == ["anchordp3", "anchordp3.d"]
+
+
+def test_the_hash_changes_with_the_code_a_stage_runs_and_nothing_else(tmp_path) -> None:
+    root = package(tmp_path)
+    before = code_hash(["anchordp3.a"], root)
+    assert code_hash(["anchordp3.a"], root) == before
+    (root / "b.py").write_text('"""Now documented."""\nfrom .sub import c\n\n\ndef g():\n    """g."""\n    return c.K + 1\n')
+    (root / "d.py").write_text("import sys\n")
+    assert code_hash(["anchordp3.a"], root) == before  # docstrings, comments, layout, unrelated modules
+    (root / "sub" / "c.py").write_text("K = 2\n")
+    assert code_hash(["anchordp3.a"], root) != before
+
+
+def test_each_data_stage_hashes_its_own_modules() -> None:
+    features = module_closure(["anchordp3.stages.features"])
+    assert "anchordp3.geometry.features" in features and "anchordp3.stages.write" not in features
+    assert "anchordp3.dataset.shard" in module_closure(["anchordp3.stages.write"])
+    assert len(code_hash(["anchordp3.stages.features"], ROOT)) == 64
