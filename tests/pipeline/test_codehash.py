@@ -47,3 +47,17 @@ def test_each_data_stage_hashes_its_own_modules() -> None:
     assert "anchordp3.geometry.features" in features and "anchordp3.stages.write" not in features
     assert "anchordp3.dataset.shard" in module_closure(["anchordp3.stages.write"])
     assert len(code_hash(["anchordp3.stages.features"], ROOT)) == 64
+
+
+def test_fingerprints_say_what_changed_and_keep_outputs_adopts_only_code_changes() -> None:
+    from anchordp3.pipeline.runner import adoptable, describe_changes
+    from anchordp3.schemas.manifest import Fingerprint
+
+    old = Fingerprint(code_version="0.1.0", code_hash="a", config_hash="c", upstream={"rollout": "x"})
+    assert old.changes(old) == []
+    assert old.changes(old.model_copy(update={"code_hash": "b"})) == ["code"]
+    assert old.changes(old.model_copy(update={"config_hash": "d", "upstream": {"rollout": "y"}})) == ["config", "upstream rollout"]
+    changes = {"rollout": ["code"], "anchors": ["upstream rollout"], "render": ["config", "upstream anchors"],
+               "features": ["upstream render"]}
+    assert adoptable(changes) == ["rollout", "anchors"]  # a config change is never kept, nor what follows it
+    assert describe_changes({"features": ["code"], "write": ["upstream features"]}) == "features (code), write (upstream features)"
