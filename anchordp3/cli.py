@@ -351,13 +351,15 @@ def recipe(
     config: Path = typer.Argument(Path("configs/recipe.yaml"), help="Recipe config (YAML): run, training, eval."),
     out: Path = typer.Option(Path("runs/recipe"), "--out", help="Recipe folder (re-running resumes it)."),
     address: str = typer.Option(None, "--address", help="Ray cluster to join (default: a local Ray)."),
+    keep_outputs: bool = typer.Option(False, "--keep-outputs", help="Resume data that older code made (same config) instead of refusing."),
 ) -> None:
     """The best known recipe end to end: data, the three models, closed-loop evaluation on unseen
     seeds and on training seeds; report with success per task, first-anchor errors and wall times."""
     from anchordp3.pipeline.recipe import recipe_report, run_recipe
     from anchordp3.schemas.recipe import load_recipe_config
 
-    results = run_recipe(out, load_recipe_config(config), say=lambda m: typer.echo(m, err=True), address=address)
+    results = run_recipe(out, load_recipe_config(config), say=lambda m: typer.echo(m, err=True), address=address,
+                         keep_outputs=keep_outputs)
     typer.echo(recipe_report(results))
     typer.echo(f"report: {out / 'report.md'}")
 

@@ -25,13 +25,15 @@ GROUP = "recipe"
 PHASES_FILE = "phases.json"
 
 
-def run_recipe(out: Path, cfg: RecipeConfig, say: Callable[[str], None] = print, address: str | None = None) -> dict:
-    """Run (or resume) the recipe into ``out``; returns the results written to ``results.json``."""
+def run_recipe(out: Path, cfg: RecipeConfig, say: Callable[[str], None] = print, address: str | None = None,
+               keep_outputs: bool = False) -> dict:
+    """Run (or resume) the recipe into ``out``; returns the results written to ``results.json``.
+    keep_outputs: keep data stages that only older code made (``RunOptions.keep_outputs``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     run = out / "run"
     clock = PhaseClock(out / PHASES_FILE, (GROUP,), say)
-    clock.timed(GROUP, "data", lambda: run_pipeline(cfg.run, run, RunOptions(address=address), say=say))
+    clock.timed(GROUP, "data", lambda: run_pipeline(cfg.run, run, RunOptions(address=address, keep_outputs=keep_outputs), say=say))
     clock.timed(GROUP, "train", lambda: train_models(run, MODELS, cfg.training, say=say))
     e = cfg.eval
     base = dict(workers=e.workers, max_decisions=e.max_decisions, through=e.through, address=address)
