@@ -86,11 +86,13 @@ def code_hash(entries: Iterable[str], root: Path | None = None) -> str:
 
 
 def _parse(path: Path) -> ast.Module:
-    return _parsed(str(path), *_stamp(path))
+    """``path``'s syntax tree with docstrings removed (imports intact), parsed once per version."""
+    return _source(str(path), *_stamp(path))[0]
 
 
 def _digest(path: Path) -> str:
-    return _digested(str(path), *_stamp(path))
+    """sha256 of ``path``'s docstring-free syntax tree."""
+    return _source(str(path), *_stamp(path))[1]
 
 
 def _stamp(path: Path) -> tuple[int, int]:
@@ -99,17 +101,12 @@ def _stamp(path: Path) -> tuple[int, int]:
 
 
 @lru_cache(maxsize=1024)
-def _parsed(path: str, mtime_ns: int, size: int) -> ast.Module:
-    return ast.parse(Path(path).read_bytes(), filename=path)
-
-
-@lru_cache(maxsize=1024)
-def _digested(path: str, mtime_ns: int, size: int) -> str:
-    tree = ast.parse(Path(path).read_bytes(), filename=path)  # a fresh tree: the cached one stays intact
+def _source(path: str, mtime_ns: int, size: int) -> tuple[ast.Module, str]:
+    tree = ast.parse(Path(path).read_bytes(), filename=path)
     for node in ast.walk(tree):
         body = getattr(node, "body", None)
         if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
                 and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
                 and isinstance(body[0].value.value, str)):
             node.body = body[1:] or [ast.Pass()]
-    return hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()
+    return tree, hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()
