@@ -90,9 +90,8 @@ def snapshot(
 
 def _run_options(stages, workers, address, force, from_stage, keep_outputs):
     from anchordp3.pipeline.runner import RunOptions
-    from anchordp3.schemas.run import DATA_STAGES
 
-    chosen = tuple(x.strip() for x in stages.split(",")) if stages else DATA_STAGES
+    chosen = tuple(x.strip() for x in stages.split(",")) if stages else None
     return RunOptions(stages=chosen, workers=workers, address=address, force=force, from_stage=from_stage,
                       keep_outputs=keep_outputs)
 

@@ -25,7 +25,8 @@ from anchordp3.dataset.reader import open_dataset  # noqa: E402
 from anchordp3.pipeline.runner import RunOptions, run_pipeline  # noqa: E402
 from anchordp3.pipeline.store import read_manifest  # noqa: E402
 from anchordp3.pipeline.work import stage_dir  # noqa: E402
-from anchordp3.schemas.run import DATA_STAGES, load_run_config  # noqa: E402
+from anchordp3.pipeline.work import DATA_STAGES  # noqa: E402
+from anchordp3.schemas.run import load_run_config  # noqa: E402
 from anchordp3.viz.table import text_table  # noqa: E402
 
 

@@ -10,11 +10,12 @@ the first ``n`` attempts of ``item`` raise (or, with ``crash``, kill the worker 
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import ray
 
-from anchordp3.pipeline.work import run_item
+from anchordp3.pipeline.graph import Stage, StageOutput
 from anchordp3.schemas.run import RunConfig
 
 FAULTS_ENV = "ANCHORDP3_INJECT_FAULTS"
@@ -37,20 +38,36 @@ def parse_faults(text: str) -> dict[tuple[str, str], tuple[int, bool]]:
 
 @ray.remote
 class StageWorker:
-    """Runs items of one stage for one run directory."""
+    """Runs items of one declared stage (``graph.Stage``) for one run directory."""
 
-    def __init__(self, stage: str, run_dir: str, cfg_json: str, faults: str = ""):
+    def __init__(self, stage: Stage, run_dir: str, cfg_json: str, faults: str = ""):
         self.stage, self.run_dir = stage, Path(run_dir)
         self.cfg = RunConfig.model_validate_json(cfg_json)
         self.faults = parse_faults(faults)
 
-    def run(self, item_id: str, item: dict, attempt: int) -> dict:
-        n, crash = self.faults.get((self.stage, item_id), (0, False))
+    def run(self, item_id: str, item, attempt: int) -> tuple[StageOutput, float]:
+        """Do one item (an ``EpisodeItem`` or ``GroupItem``): its output and compute seconds.
+        Raises whatever the stage raises."""
+        n, crash = self.faults.get((self.stage.name, item_id), (0, False))
         if attempt <= n:
             if crash:
                 os._exit(1)
-            raise InjectedFault(f"injected fault in {self.stage} {item_id} (attempt {attempt})")
-        return run_item(self.stage, self.run_dir, self.cfg, item)
+            raise InjectedFault(f"injected fault in {self.stage.name} {item_id} (attempt {attempt})")
+        t0 = time.perf_counter()
+        out = self.stage.run(self.run_dir, self.cfg, item)
+        return out, time.perf_counter() - t0
+
+    def run_many(self, calls: list[tuple[str, object, int]]) -> list[tuple[StageOutput | None, float, str | None, str]]:
+        """Do each ``(item id, item, attempt)`` in turn: per item ``(output, seconds, None, "")``, or
+        ``(None, 0, exception type, its last line)`` when it raised (the others still run)."""
+        out = []
+        for item_id, item, attempt in calls:
+            try:
+                res, seconds = self.run(item_id, item, attempt)
+                out.append((res, seconds, None, ""))
+            except Exception as e:  # noqa: BLE001 - the driver retries, then records the failure
+                out.append((None, 0.0, type(e).__name__, (str(e).strip().splitlines() or [type(e).__name__])[-1][:300]))
+        return out
 
     def ping(self) -> bool:
         return True

@@ -2,7 +2,7 @@
 
 Seeds are disjoint from every training seed (``max(training seeds) + 1000 + i``) and the
 instructions come from held-out phrasing families. Output under ``<run>/eval/``:
-``manifest.json`` (one record per episode, resumable), ``episodes/<task>/<seed>.json``,
+``records.sqlite`` (the manifest: one record per episode, resumable), ``episodes/<task>/<seed>.json``,
 ``episodes.parquet`` (the table), ``success.png`` (success rate per task with 95 % Wilson
 intervals), ``strips/<task>/<seed>.png`` (the head camera at each decision of a few episodes)
 and ``report.md``.
@@ -25,6 +25,7 @@ from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.runner import ensure_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
+from anchordp3.schemas.records import EvalEpisodeInfo
 from anchordp3.schemas.episode import parse_seeds
 from anchordp3.schemas.run import RunConfig, config_hash, load_run_config
 from anchordp3.stages.files import atomic_write_bytes
@@ -255,8 +256,9 @@ def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg:
                 rel = f"episodes/{ep[0]}/{ep[1]:06d}.json"
                 atomic_write_bytes(out / rel, json.dumps(rec, indent=1).encode())
                 store.record(ItemRecord(item=episode_item(*ep), status="done", output=rel, checksum=file_sha256(out / rel),
-                                        seconds=rec["seconds"], info={"success": rec["success"], "steps": rec["steps"],
-                                                                      "decisions": rec["decisions"], "failure": rec["failure"]}))
+                                        seconds=rec["seconds"], info=EvalEpisodeInfo(
+                                            success=rec["success"], steps=rec["steps"], decisions=rec["decisions"],
+                                            failure=rec["failure"]).model_dump(mode="json")))
                 finished += 1
                 say(f"evaluate: {ep[0]} seed {ep[1]}: {'success' if rec['success'] else rec['failure']} "
                     f"({rec['steps']} steps, {rec['decisions']} decisions) [{finished}/{len(pending)}, "
@@ -266,9 +268,10 @@ def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg:
         finally:
             for w in workers:
                 ray.kill(w)
-    store.compact(len(todo), complete=all(store.done(episode_item(*ep)) for ep in todo))
+    store.finish(len(todo), complete=all(store.done(episode_item(*ep)) for ep in todo))
     train_seeds = cfg.seed_list
     records = [{**json.loads((out / store.items[episode_item(*ep)].output).read_text()), "seen": ep[1] in train_seeds} for ep in todo]
+    store.close()
     write_reports(out, records, cfg, opts)
     return records
 

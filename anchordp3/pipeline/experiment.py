@@ -29,6 +29,7 @@ from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.training import MODELS, train_models
 from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.experiment import ExperimentConfig
+from anchordp3.schemas.records import AnchorsInfo, RolloutInfo
 from anchordp3.schemas.run import RunConfig
 from anchordp3.stages.files import atomic_write_bytes
 
@@ -46,14 +47,15 @@ def rendered_frames(run_dir: Path) -> dict[tuple[str, int], int]:
     """Frames rendered per ``(task, seed)`` episode of a run (planned frames of rendered episodes)."""
     plans = read_manifest(stage_dir(run_dir, "anchors")).items
     rendered = read_manifest(stage_dir(run_dir, "render")).items
-    return {_item_key(k): int(plans[k].info["frames"]) for k, r in rendered.items()
+    return {_item_key(k): plans[k].payload(AnchorsInfo).frames for k, r in rendered.items()
             if r.status == "done" and k in plans and plans[k].status == "done"}
 
 
 def kept_steps(run_dir: Path) -> dict[tuple[str, int], int]:
     """Control steps of each kept (expert-successful) episode of a run."""
     items = read_manifest(stage_dir(run_dir, "rollout")).items
-    return {_item_key(k): int(r.info["record"]["steps"]) for k, r in items.items() if r.status == "done" and r.info.get("kept")}
+    kept = {k: info for k, r in items.items() if r.status == "done" and (info := r.payload(RolloutInfo)).kept}
+    return {_item_key(k): info.record.steps for k, info in kept.items()}
 
 
 def dense_frame_count(steps: int, stride: int) -> int:

@@ -9,16 +9,18 @@ from __future__ import annotations
 
 import json
 from collections import Counter
+from collections.abc import Iterable
 from pathlib import Path
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
 from anchordp3.pipeline.runner import CONFIG_FILE, fingerprints
-from anchordp3.pipeline.store import JOURNAL, MANIFEST, read_manifest
-from anchordp3.pipeline.work import STAGE_DIRS, stage_dir
+from anchordp3.pipeline.store import has_manifest, read_manifest, read_record, read_records, read_summary
+from anchordp3.pipeline.work import DATA_STAGES, STAGE_DIRS, stage_dir
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord, StageManifest
-from anchordp3.schemas.run import DATA_STAGES, RunConfig, load_run_config
+from anchordp3.schemas.records import RolloutInfo
+from anchordp3.schemas.run import RunConfig, load_run_config
 from anchordp3.viz.table import text_table
 
 SLOWEST = 5
@@ -47,8 +49,7 @@ def check_run_dir(run_dir: Path) -> Path:
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"{run_dir}: no such run directory")
-    has_manifest = any((stage_dir(run_dir, s) / f).is_file() for s in DATA_STAGES for f in (MANIFEST, JOURNAL))
-    if not has_manifest and not (run_dir / CONFIG_FILE).is_file():
+    if not any(has_manifest(stage_dir(run_dir, s)) for s in DATA_STAGES) and not (run_dir / CONFIG_FILE).is_file():
         raise ValueError(f"{run_dir}: not a run directory (no {CONFIG_FILE} and no stage manifests)")
     return run_dir
 
@@ -64,9 +65,15 @@ def stage_name(name: str) -> str:
 
 
 def load_manifest(run_dir: Path, stage: str) -> StageManifest:
-    """The stage's manifest (journal folded in); ValueError when the stage has not run."""
+    """The stage's manifest with every record; ValueError when the stage has not run."""
+    load_manifest_summary(run_dir, stage)
+    return read_manifest(stage_dir(run_dir, stage))
+
+
+def load_manifest_summary(run_dir: Path, stage: str) -> StageManifest:
+    """The stage's fingerprint and totals (no records); ValueError when the stage has not run."""
     d = stage_dir(run_dir, stage)
-    m = read_manifest(d) if d.is_dir() else None
+    m = read_summary(d) if d.is_dir() else None
     if m is None:
         raise ValueError(f"stage {stage}: has not run in {run_dir} (no manifest in {d})")
     return m
@@ -91,7 +98,7 @@ def run_status(run_dir: Path) -> list[StageStatus]:
     out = []
     for s in DATA_STAGES:
         d = stage_dir(run_dir, s)
-        m = read_manifest(d) if d.is_dir() else None
+        m = read_summary(d) if d.is_dir() else None
         if m is None:
             out.append(StageStatus(stage=s, folder=STAGE_DIRS[s], ran=False))
             continue
@@ -130,18 +137,17 @@ def run_overview(run_dir: Path) -> str:
 
 
 # ---------------------------------------------------------------------------------- one stage
-def failure_groups(m: StageManifest) -> list[tuple[str, int, str, str]]:
+def failure_groups(records: Iterable[ItemRecord]) -> list[tuple[str, int, str, str]]:
     """Failed items grouped by reason: ``(reason, count, example item, its detail)``, most first."""
-    return _groups([(r.reason or "?", r.item, _short(r.detail)) for r in m.items.values() if r.status == "failed"])
+    return _groups([(r.reason or "?", r.item, _short(r.detail)) for r in records if r.status == "failed"])
 
 
-def discard_groups(m: StageManifest) -> list[tuple[str, int, str, str]]:
-    """Rollouts done but not kept (the expert failed), grouped by the episode's failure reason."""
+def discard_groups(records: Iterable[ItemRecord]) -> list[tuple[str, int, str, str]]:
+    """Rollout records done but not kept (the expert failed), grouped by the episode's failure reason."""
     rows = []
-    for r in m.items.values():
-        if r.status == "done" and r.info.get("kept") is False:
-            rec = r.info.get("record") or {}
-            rows.append((rec.get("reason") or "?", r.item, _short(rec.get("detail") or "")))
+    for r in records:
+        if r.status == "done" and not (info := r.payload(RolloutInfo)).kept:
+            rows.append((info.record.reason or "?", r.item, _short(info.record.detail)))
     return _groups(rows)
 
 
@@ -163,7 +169,10 @@ def stage_report(run_dir: Path, stage: str, limit: int = 50) -> str:
     limit: items listed at most (0: all)."""
     run_dir = check_run_dir(run_dir)
     stage = stage_name(stage)
-    m = load_manifest(run_dir, stage)
+    d = stage_dir(run_dir, stage)
+    m = read_summary(d) if d.is_dir() else None
+    if m is None:
+        raise ValueError(f"stage {stage}: has not run in {run_dir} (no manifest in {d})")
     st = next(s for s in run_status(run_dir) if s.stage == stage)
     c = m.counts
     fp = m.fingerprint
@@ -173,26 +182,25 @@ def stage_report(run_dir: Path, stage: str, limit: int = 50) -> str:
              "",
              text_table(["planned", "done", "failed", "compute s", "mean s/item"],
                         [[c.planned, c.done, c.failed, f"{c.seconds:.1f}",
-                          f"{c.seconds / len(m.items):.2f}" if m.items else "-"]]),
+                          f"{c.seconds / (c.done + c.failed):.2f}" if c.done + c.failed else "-"]]),
              "",
              text_table(["fingerprint", "code version", "code hash", "config hash", "upstream", "vs config and code"],
                         [[fp.digest(), fp.code_version, fp.code_hash[:16] or "-", fp.config_hash[:16],
                           ", ".join(f"{k}:{v}" for k, v in fp.upstream.items()) or "-", stale]])]
-    slow = sorted(m.items.values(), key=lambda r: r.seconds, reverse=True)[:SLOWEST]
+    slow = read_records(d, slowest=True, limit=SLOWEST)
     if slow:
         lines += ["", "slowest items:", text_table(["item", "seconds", "attempts"], [[r.item, f"{r.seconds:.2f}", r.attempts] for r in slow])]
-    fails = failure_groups(m)
+    fails = failure_groups(read_records(d, status="failed"))
     if fails:
         lines += ["", "failure reasons:", text_table(["reason", "count", "example", "detail"], [list(g) for g in fails])]
-    discards = discard_groups(m)
+    discards = discard_groups(read_records(d, status="done")) if stage == "rollout" else []
     if discards:
         lines += ["", "not kept (the expert failed):", text_table(["reason", "count", "example", "detail"], [list(g) for g in discards])]
-    items = list(m.items.values())
-    shown = items if limit <= 0 else items[:limit]
+    shown = read_records(d, limit=limit)
     lines += ["", "items:", text_table(["item", "status", "attempts", "seconds", "output"],
                                        [[r.item, r.status, r.attempts, f"{r.seconds:.2f}", r.output or "-"] for r in shown])]
-    if len(shown) < len(items):
-        lines.append(f"… {len(items) - len(shown)} more (--limit 0 lists all, --json gives everything)")
+    if len(shown) < c.done + c.failed:
+        lines.append(f"… {c.done + c.failed - len(shown)} more (--limit 0 lists all, --json gives everything)")
     return "\n".join(lines)
 
 
@@ -204,16 +212,17 @@ def item_records(run_dir: Path, item: str, stage: str | None = None) -> dict[str
     run_dir = check_run_dir(run_dir)
     if stage is not None:
         stage = stage_name(stage)
-        rec = load_manifest(run_dir, stage).items.get(item)
+        load_manifest_summary(run_dir, stage)
+        rec = read_record(stage_dir(run_dir, stage), item)
         if rec is None:
             raise ValueError(f"stage {stage}: no item {item!r} in its manifest")
         return {stage: rec}
     out = {}
     for s in DATA_STAGES:
         d = stage_dir(run_dir, s)
-        m = read_manifest(d) if d.is_dir() else None
-        if m is not None and item in m.items:
-            out[s] = m.items[item]
+        rec = read_record(d, item) if has_manifest(d) else None
+        if rec is not None:
+            out[s] = rec
     if not out:
         raise ValueError(f"no item {item!r} in any stage of {run_dir}")
     return out

@@ -19,6 +19,7 @@ from anchordp3.pipeline.phases import PhaseClock
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.training import MODELS, model_status, train_models
 from anchordp3.schemas.recipe import RecipeConfig
+from anchordp3.schemas.records import ModelInfo
 from anchordp3.stages.files import atomic_write_bytes
 
 GROUP = "recipe"
@@ -59,8 +60,9 @@ def recipe_results(out: Path, cfg: RecipeConfig, unseen: list[dict], seen: list[
     models = {}
     for name in MODELS:
         rec = model_status(out / "run", name).record
-        info = rec.info if rec else {}
-        models[name] = {"steps": info.get("steps"), "train_seconds": info.get("train_seconds"), "metrics": info.get("metrics", {})}
+        info = rec.payload(ModelInfo) if rec else None
+        models[name] = {"steps": info.steps if info else None, "train_seconds": info.train_seconds if info else None,
+                        "metrics": info.metrics if info else {}}
     results = {"tasks": cfg.run.tasks, "seeds": cfg.run.seeds, "preset": cfg.run.preset,
                "episodes": len(data.episodes()), "samples": len(data), "through": cfg.eval.through, "models": models,
                "unseen": summarize(unseen), "train_seeds": summarize(seen) if seen else [], "seconds": seconds}

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from anchordp3.pipeline.store import read_manifest
-from anchordp3.pipeline.work import stage_dir
-from anchordp3.schemas.run import DATA_STAGES
+from anchordp3.pipeline.store import STORE_FILES, read_manifest
+from anchordp3.pipeline.work import DATA_STAGES, stage_dir
 from anchordp3.viz.table import text_table
 
 
@@ -34,7 +33,8 @@ def data_summary(run_dir: Path) -> str:
 
 def dataset_content_hash(run_dir: Path) -> str:
     """sha256 over the dataset's files (names and bytes), leaving out the write stage's own
-    bookkeeping (manifest, journal) and leftovers of interrupted writes (dot-files)."""
+    bookkeeping (its manifest, in either format, with SQLite's side files) and leftovers of
+    interrupted writes (dot-files)."""
     import hashlib
 
     from anchordp3.dataset.files import file_sha256, tree_files
@@ -42,7 +42,7 @@ def dataset_content_hash(run_dir: Path) -> str:
     root = stage_dir(run_dir, "write")
     h = hashlib.sha256()
     for rel in tree_files(root):
-        if rel in ("manifest.json", "journal.jsonl") or any(part.startswith(".") for part in rel.split("/")):
+        if rel.startswith(STORE_FILES) or any(part.startswith(".") for part in rel.split("/")):
             continue
         h.update(rel.encode() + b"\0" + file_sha256(root / rel).encode())
     return h.hexdigest()

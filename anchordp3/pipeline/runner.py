@@ -1,10 +1,13 @@
-"""Running the data stages as streaming pools of Ray actors, with manifests and resume.
+"""Running a stage graph as streaming pools of Ray actors, with manifests and resume.
 
 The driver (this module) owns the manifests and decides what runs; actors (``actors.py``) do the
-items. An episode flows rollout → anchors → render → features as soon as each step is done;
-a shard is written as soon as every episode it holds is resolved (featurised, not kept, or
-failed); the dataset's index and statistics are computed when every shard is written. Work in
-flight is bounded per actor, and only IDs and paths travel between processes.
+items. The loop knows no stage by name: it walks the declared graph (``graph.Graph``; the data
+stages of ``work.DATA_GRAPH`` by default). An episode flows through the episode stages
+(rollout → anchors → render → features) as soon as each step is done; a group (a shard) is
+written as soon as every episode it holds is resolved (through every stage, stopped, or failed);
+the group stage's finishing item (the dataset's index and statistics) comes when every group is
+done. Work in flight is bounded per actor, and only IDs, paths and small typed payloads travel
+between processes.
 """
 
 from __future__ import annotations
@@ -23,23 +26,20 @@ import ray
 import yaml
 
 import anchordp3
-from anchordp3.dataset.files import file_sha256
 from anchordp3.pipeline.actors import FAULTS_ENV, StageWorker
 from anchordp3.pipeline.codehash import code_hash
+from anchordp3.pipeline.graph import EpisodeItem, Graph, GroupItem, Stage, StageOutput
 from anchordp3.pipeline.lock import RunLock
 from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_manifest
-from anchordp3.pipeline.work import STAGE_CODE, stage_dir
-from anchordp3.schemas.dataset import ShardMember, ShardRecord
+from anchordp3.pipeline.work import DATA_GRAPH
 from anchordp3.schemas.episode import episode_id
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
-from anchordp3.schemas.run import DATA_STAGES, RunConfig, config_hash
+from anchordp3.schemas.run import RunConfig, config_hash
 from anchordp3.stages.files import atomic_write_bytes
-from anchordp3.stages.render import prune_frames
-from anchordp3.stages.write import finalize, plan_tasks, shard_plan
 
-EPISODE_STAGES = ("rollout", "anchors", "render", "features")
-INDEX_ITEM = "dataset"  # the write stage's last item: index, statistics, dataset.json
 CONFIG_FILE = "config.yaml"
+CALL_SECONDS = 0.05  # work an actor call should carry before items are batched into it
+MAX_BATCH = 256      # items per actor call at most
 
 
 class RunAborted(RuntimeError):
@@ -50,7 +50,7 @@ class RunAborted(RuntimeError):
 class RunOptions:
     """How to run: which stages, how many workers, where, and what to redo."""
 
-    stages: tuple[str, ...] = DATA_STAGES
+    stages: tuple[str, ...] | None = None  # None: every stage of the graph
     workers: int | None = None          # overrides every pool's size
     address: str | None = None          # None: a local Ray; "auto" or "ray://…": join a cluster
     force: bool = False                 # redo stages whose fingerprint changed
@@ -60,28 +60,26 @@ class RunOptions:
     faults: str = field(default_factory=lambda: os.environ.get(FAULTS_ENV, ""))
 
 
-def fingerprints(cfg: RunConfig) -> dict[str, Fingerprint]:
-    """Each data stage's fingerprint: code version and hash, its config part, its upstream's digest."""
+def fingerprints(cfg: RunConfig, graph: Graph = DATA_GRAPH) -> dict[str, Fingerprint]:
+    """Each stage's fingerprint: code version and hash, its config part, its upstream's digest."""
     out: dict[str, Fingerprint] = {}
-    prev = None
-    for s in DATA_STAGES:
-        up = {prev: out[prev].digest()} if prev else {}
-        out[s] = Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([STAGE_CODE[s]]),
-                             config_hash=config_hash(cfg.stage_config(s)), upstream=up)
-        prev = s
+    for st in graph.stages:
+        up = graph.upstream(st.name)
+        out[st.name] = Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([st.code]),
+                                   config_hash=config_hash(st.config(cfg)), upstream={up: out[up].digest()} if up else {})
     return out
 
 
-def stage_changes(cfg: RunConfig, run_dir: Path) -> dict[str, list[str]]:
+def stage_changes(cfg: RunConfig, run_dir: Path, graph: Graph = DATA_GRAPH) -> dict[str, list[str]]:
     """Stages whose stored outputs were made with another fingerprint than ``cfg`` (and this code)
     gives, in pipeline order, each with what changed (``Fingerprint.changes``)."""
-    fps = fingerprints(cfg)
+    fps = fingerprints(cfg, graph)
     out = {}
-    for s in DATA_STAGES:
-        d = stage_dir(run_dir, s)
+    for st in graph.stages:
+        d = Path(run_dir) / st.folder
         m = read_manifest(d) if d.exists() else None
-        if m is not None and (changed := m.fingerprint.changes(fps[s])):
-            out[s] = changed
+        if m is not None and (changed := m.fingerprint.changes(fps[st.name])):
+            out[st.name] = changed
     return out
 
 
@@ -103,11 +101,11 @@ def describe_changes(changes: dict[str, list[str]]) -> str:
 class _Stats:
     """Per-stage counters for the progress display."""
 
-    def __init__(self):
+    def __init__(self, names: tuple[str, ...]):
         self.t0 = time.perf_counter()
-        self.done = {s: 0 for s in DATA_STAGES}
-        self.failed = {s: 0 for s in DATA_STAGES}
-        self.compute = {s: 0.0 for s in DATA_STAGES}
+        self.done = {s: 0 for s in names}
+        self.failed = {s: 0 for s in names}
+        self.compute = {s: 0.0 for s in names}
 
     def line(self, s: str, total: int, already: int) -> str:
         el = time.perf_counter() - self.t0
@@ -163,24 +161,32 @@ class CrashTriage:
 
 
 class Runner:
-    """One invocation of ``anchordp3 run`` on a run directory (use ``run_pipeline``)."""
+    """One invocation of ``anchordp3 run`` on a run directory (use ``run_pipeline``), generic over
+    a stage graph (``graph.Graph``; the data stages by default)."""
 
-    def __init__(self, cfg: RunConfig, run_dir: Path, opts: RunOptions, say: Callable[[str], None]):
-        self.cfg, self.run_dir, self.opts, self.say = cfg, Path(run_dir), opts, say
-        self.fps = fingerprints(cfg)
+    def __init__(self, cfg: RunConfig, run_dir: Path, opts: RunOptions, say: Callable[[str], None], graph: Graph = DATA_GRAPH):
+        self.cfg, self.run_dir, self.opts, self.say, self.graph = cfg, Path(run_dir), opts, say, graph
+        self.names = graph.names
+        self.chain = graph.episode_stages
+        self.group = graph.group_stage
+        self.enabled = [s for s in self.names if s in (opts.stages or self.names)]
+        self.fps = fingerprints(cfg, graph)
         self.episodes = [(t, s) for t in cfg.tasks for s in cfg.seed_list]
-        self.plan = shard_plan(self.episodes, cfg.write)
-        self.tasks = plan_tasks(self.plan)
-        self.shard_of = {(m.task, m.seed): k for k, members in enumerate(self.plan) for m in members}
-        self.stats = _Stats()
+        self.plan = self.group.group(cfg, self.episodes) if self.group else []
+        self.group_of = {(m.task, m.seed): k for k, members in enumerate(self.plan) for m in members}
+        self.halted: dict[str, set[str]] = {st.name: set() for st in self.chain}  # done, but the episode stops here
+        self.stats = _Stats(self.names)
         self.interval = opts.progress_interval if opts.progress_interval is not None else (2.0 if sys.stderr.isatty() else 15.0)
+
+    def _dir(self, stage: str) -> Path:
+        return self.run_dir / self.graph[stage].folder
 
     # ----------------------------------------------------------------------------- setup
     def open_stores(self) -> dict[str, ManifestStore]:
-        changes = stage_changes(self.cfg, self.run_dir)
+        changes = stage_changes(self.cfg, self.run_dir, self.graph)
         redo: set[str] = set()
         if self.opts.from_stage:
-            redo |= set(DATA_STAGES[DATA_STAGES.index(self.opts.from_stage):])
+            redo |= set(self.names[self.names.index(self.opts.from_stage):])
         if self.opts.force:
             redo |= set(changes)
         keep = set(adoptable({s: c for s, c in changes.items() if s not in redo})) if self.opts.keep_outputs else set()
@@ -192,59 +198,56 @@ class Runner:
             raise StaleStageError(
                 f"{self.run_dir}: stage(s) {describe_changes(left)} were made with another "
                 f"{'code' if code_only else 'config or code'} than now; refusing to mix old and new outputs: rerun with {hint}")
-        for s in DATA_STAGES:
+        for s in self.names:
             if s in keep:
                 self.say(f"{s}: keeping the outputs other code made ({', '.join(changes[s])}), as --keep-outputs asks")
-        return {s: ManifestStore(stage_dir(self.run_dir, s), s, self.fps[s], reset=s in redo, adopt=s in keep)
-                for s in DATA_STAGES}
+        stores = {s: ManifestStore(self._dir(s), s, self.fps[s], reset=s in redo, adopt=s in keep) for s in self.names}
+        for st in self.chain:
+            self.halted[st.name] = {i for i, r in stores[st.name].records()
+                                    if r.status == "done" and not r.payload(st.record).continues}
+        return stores
 
     def check_inputs(self, stores: dict[str, ManifestStore]) -> None:
         """A stage run without its upstream must find the upstream complete."""
-        enabled = set(self.opts.stages)
-        for s in self.opts.stages:
-            i = DATA_STAGES.index(s)
-            if i == 0 or DATA_STAGES[i - 1] in enabled:
+        for s in self.enabled:
+            up = self.graph.upstream(s)
+            if up is None or up in self.enabled:
                 continue
-            up = DATA_STAGES[i - 1]
             m = stores[up].manifest
             if not m.complete:
                 raise ValueError(f"stage {s}: its input stage {up} is not complete ({m.counts.done} done, "
                                  f"{m.counts.failed} failed of {m.counts.planned}); run {up} first or both together")
 
     # ----------------------------------------------------------------------------- episode flow
-    def next_stage(self, stores: dict[str, ManifestStore], ep: tuple[str, int]) -> str | None:
-        """The stage ``ep`` needs next, or None when it is resolved."""
-        eid = episode_id(*ep)
-        for s in EPISODE_STAGES:
-            r = stores[s].items.get(eid)
-            if r is None:
-                return s
-            if r.status == "failed":
-                return None
-            if s == "rollout" and not r.info.get("kept"):
+    def next_stage(self, stores: dict[str, ManifestStore], eid: str) -> str | None:
+        """The episode stage ``eid`` needs next, or None when it is resolved."""
+        for st in self.chain:
+            status = stores[st.name].status.get(eid)
+            if status is None:
+                return st.name
+            if status == "failed" or eid in self.halted[st.name]:
                 return None
         return None
 
-    def episode_ok(self, stores: dict[str, ManifestStore], ep: tuple[str, int]) -> bool:
-        return stores["features"].done(episode_id(*ep))
+    def episode_ok(self, stores: dict[str, ManifestStore], eid: str) -> bool:
+        """The episode went through every episode stage."""
+        return bool(self.chain) and stores[self.chain[-1].name].done(eid)
 
-    def item_payload(self, stores: dict[str, ManifestStore], stage: str, ep: tuple[str, int]) -> dict:
-        item = {"task": ep[0], "seed": ep[1]}
-        if stage in ("anchors", "render"):
-            item["record"] = stores["rollout"].items[episode_id(*ep)].info["record"]
-        return item
+    def episode_item(self, stores: dict[str, ManifestStore], stage: Stage, ep: tuple[str, int], ok: bool = True) -> EpisodeItem:
+        """``ep`` as ``stage``'s input: the payloads it needs, of those records that are done."""
+        eid = episode_id(*ep)
+        inputs = []
+        for model in stage.needs:
+            rec = stores[self.graph.producer(model)].items.get(eid)
+            if rec is not None and rec.status == "done":
+                inputs.append(rec.payload(model))
+        return EpisodeItem(ep[0], ep[1], tuple(inputs), ok)
 
-    def shard_payload(self, stores: dict[str, ManifestStore], k: int) -> dict:
-        members, failed = [], []
-        for m in self.plan[k]:
-            ep = (m.task, m.seed)
-            rec = stores["rollout"].items.get(episode_id(*ep))
-            text = rec.info["record"]["instruction"] if rec is not None and rec.status == "done" else ""
-            members.append(ShardMember(task=m.task, seed=m.seed, episode_index=m.episode_index, task_id=m.task_id,
-                                       instruction=text).model_dump(mode="json"))
-            if not self.episode_ok(stores, ep):
-                failed.append([m.task, m.seed])
-        return {"shard": k, "members": members, "failed": failed, "tasks": self.tasks}
+    def group_item(self, stores: dict[str, ManifestStore], k: int) -> GroupItem:
+        members = self.plan[k]
+        eps = tuple(self.episode_item(stores, self.group, (m.task, m.seed), self.episode_ok(stores, episode_id(m.task, m.seed)))
+                    for m in members)
+        return GroupItem(k, tuple(members), eps)
 
     # ----------------------------------------------------------------------------- the run
     def run(self) -> dict:
@@ -254,89 +257,134 @@ class Runner:
                 self.check_inputs(stores)
                 atomic_write_bytes(self.run_dir / CONFIG_FILE, yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False).encode())
                 self._loop(stores)
-                if "write" in self.opts.stages:
-                    self._finalize(stores)
+                if self.group is not None and self.group.name in self.enabled:
+                    self._finish(stores)
             finally:
                 for s, st in stores.items():
-                    st.compact(self._planned(stores, s), self._complete(stores, s))
-            return {s: stores[s].manifest.counts.model_dump() for s in DATA_STAGES}
+                    st.finish(self._planned(stores, s), self._complete(stores, s))
+                    st.close()
+            return {s: stores[s].manifest.counts.model_dump() for s in self.names}
 
     def _planned(self, stores: dict[str, ManifestStore], s: str) -> int:
-        if s == "rollout":
+        if self.group is not None and s == self.group.name:
+            return len(self.plan) + (1 if self.group.finish else 0)
+        prev = self.graph.upstream(s)
+        if prev is None:
             return len(self.episodes)
-        if s == "write":
-            return len(self.plan) + 1
-        prev = EPISODE_STAGES[EPISODE_STAGES.index(s) - 1]
-        recs = [stores[prev].items.get(episode_id(*ep)) for ep in self.episodes]
-        if prev == "rollout":
-            return sum(1 for r in recs if r is not None and r.status == "done" and r.info.get("kept"))
-        return sum(1 for r in recs if r is not None and r.status == "done")
+        status, halted = stores[prev].status, self.halted[prev]
+        return sum(1 for ep in self.episodes if status.get(eid := episode_id(*ep)) == "done" and eid not in halted)
 
     def _complete(self, stores: dict[str, ManifestStore], s: str) -> bool:
-        if s == "write":
-            return stores["write"].done(INDEX_ITEM)
-        upstream_complete = s == "rollout" or self._complete(stores, EPISODE_STAGES[EPISODE_STAGES.index(s) - 1])
-        items = stores[s].items
-        return upstream_complete and len(items) >= self._planned(stores, s) and (s != "rollout" or len(items) == len(self.episodes))
+        if self.group is not None and s == self.group.name:
+            if self.group.finish:
+                return stores[s].done(self.group.finish_item)
+            return all(stores[s].done(_group_id(k)) for k in range(len(self.plan)))
+        prev = self.graph.upstream(s)
+        upstream_complete = prev is None or self._complete(stores, prev)
+        n = len(stores[s].status)
+        return upstream_complete and n >= self._planned(stores, s) and (prev is not None or n == len(self.episodes))
 
     def _loop(self, stores: dict[str, ManifestStore]) -> None:
-        enabled = [s for s in DATA_STAGES if s in self.opts.stages]
-        queues: dict[str, deque] = {s: deque() for s in DATA_STAGES}
+        enabled = self.enabled
+        group = self.group.name if self.group is not None else None
+        queues: dict[str, deque] = {s: deque() for s in self.names}
         queued: set[tuple[str, str]] = set()
-        shards_left = {k for k in range(len(self.plan)) if not stores["write"].done(f"shard/{k:05d}")}
+        groups_left = {k for k in range(len(self.plan)) if not stores[group].done(_group_id(k))} if group else set()
 
-        def enqueue_episode(ep):
-            s = self.next_stage(stores, ep)
-            if s in enabled and (s, episode_id(*ep)) not in queued:
+        unresolved = {k: len(self.plan[k]) for k in groups_left}  # members still to resolve, per group left
+
+        def enqueue_episode(eid, ep) -> bool:
+            """Queue ``ep`` for the stage it needs next; False when it needs none (resolved)."""
+            s = self.next_stage(stores, eid)
+            if s is None:
+                return False
+            if s in enabled and (s, eid) not in queued:
                 queues[s].append(ep)
-                queued.add((s, episode_id(*ep)))
+                queued.add((s, eid))
+            return True
 
-        def enqueue_ready_shards(candidates):
-            """Queue the shards among ``candidates`` whose every episode is resolved."""
-            if "write" not in enabled:
+        def resolved(ep) -> None:
+            """``ep`` needs no more episode stages: its group may be ready."""
+            k = self.group_of.get(ep)
+            if k is None or k not in unresolved:
                 return
-            for k in sorted(candidates & shards_left):
-                if ("write", str(k)) in queued:
-                    continue
-                if all(self.next_stage(stores, (m.task, m.seed)) is None for m in self.plan[k]):
-                    queues["write"].append(k)
-                    queued.add(("write", str(k)))
+            unresolved[k] -= 1
+            if unresolved[k] == 0 and group in enabled:
+                queues[group].append(k)
+                queued.add((group, _group_id(k)))
 
         for ep in self.episodes:
-            if stores["features"].done(episode_id(*ep)):
-                self._prune(stores, episode_id(*ep))  # finishes a prune a crash interrupted
-            enqueue_episode(ep)
-        enqueue_ready_shards(set(shards_left))
+            eid = episode_id(*ep)
+            self._release(stores, eid)  # finishes a release a crash interrupted
+            if not enqueue_episode(eid, ep):
+                resolved(ep)
+        for store in stores.values():
+            store.flush()
         if not any(queues.values()):
             return
 
-        pools = self._start_pools(enabled, queues)
-        in_flight: dict = {}  # ObjectRef → (stage, item id, key, attempt, actor index)
-        load = {s: [0] * len(pools.get(s, [])) for s in DATA_STAGES}
+        pools = self._start_pools(enabled)
+        in_flight: dict = {}  # ObjectRef → (stage, actor index, [(item id, key, attempt), …])
+        load = {s: [0] * len(pools.get(s, [])) for s in self.names}  # calls in flight per actor
         triage = CrashTriage()
         pings: dict = {}      # ObjectRef of a ping → actor (stage, index) that died
         ping_due: dict = {}   # actor → when to ping it (again)
         attempts: dict[tuple[str, str], int] = {}
         last_print = 0.0
         cap = self.cfg.execution.in_flight_per_worker
+
+        def item_id_of(s, key) -> str:
+            return _group_id(key) if s == group else episode_id(*key)
+
+        def submit(s: str) -> None:
+            """Send ``s``'s queued items to its free actors, a batch per call (``_batch_size``)."""
+            st, size = self.graph[s], self._batch_size(s)
+            while queues[s] and pools.get(s):
+                first = item_id_of(s, queues[s][0])
+                free = [a for a in range(len(load[s])) if triage.can_take((s, a), (s, first), load[s][a], cap)]
+                if not free:
+                    return
+                a = min(free, key=lambda i: load[s][i])
+                batch = []
+                while queues[s] and len(batch) < (1 if (s, first) in triage.suspects else size):
+                    key = queues[s][0]
+                    item_id = item_id_of(s, key)
+                    if batch and (s, item_id) in triage.suspects:
+                        break  # a suspect runs alone
+                    queues[s].popleft()
+                    attempts[(s, item_id)] = attempts.get((s, item_id), 0) + 1
+                    batch.append((item_id, key, attempts[(s, item_id)]))
+                    triage.submitted((s, a), (s, item_id))
+                items = [(i, self.group_item(stores, k) if s == group else self.episode_item(stores, st, k), n) for i, k, n in batch]
+                in_flight[pools[s][a].run_many.remote(items)] = (s, a, batch)
+                load[s][a] += 1
+
+        def settle(s: str, item_id: str, key, attempt: int, result) -> None:
+            """Record one item's outcome (``result``: ``(out, seconds, reason, detail)``) or queue its retry."""
+            out, seconds, reason, detail = result
+            if out is None and attempt < self.cfg.execution.max_attempts:
+                queues[s].appendleft(key)
+                return
+            if out is None:
+                stores[s].record(ItemRecord(item=item_id, status="failed", attempts=attempt, reason=reason, detail=detail), durable=False)
+                self.stats.failed[s] += 1
+                self._check_failures(stores, s)
+            else:
+                stores[s].record(_done_record(item_id, out, seconds, attempt), durable=False)
+                if s != group and not out.info.continues:
+                    self.halted[s].add(item_id)
+                self.stats.done[s] += 1
+                self.stats.compute[s] += seconds
+                if s != group:
+                    self._release(stores, item_id)
+            queued.discard((s, item_id))
+            if s != group and not enqueue_episode(item_id, key):
+                resolved(key)
+
         try:
             while True:
                 for s in reversed(enabled):  # downstream first: finish episodes before starting new ones
-                    while queues[s] and pools.get(s):
-                        key = queues[s][0]
-                        item_id = f"shard/{key:05d}" if s == "write" else episode_id(*key)
-                        free = [a for a in range(len(load[s])) if triage.can_take((s, a), (s, item_id), load[s][a], cap)]
-                        if not free:
-                            break
-                        queues[s].popleft()
-                        payload = self.shard_payload(stores, key) if s == "write" else self.item_payload(stores, s, key)
-                        a = min(free, key=lambda i: load[s][i])
-                        attempt = attempts.get((s, item_id), 0) + 1
-                        attempts[(s, item_id)] = attempt
-                        ref = pools[s][a].run.remote(item_id, payload, attempt)
-                        in_flight[ref] = (s, item_id, key, attempt, a)
-                        triage.submitted((s, a), (s, item_id))
-                        load[s][a] += 1
+                    submit(s)
                 now = time.perf_counter()
                 for actor, due in list(ping_due.items()):  # a dead actor is trusted again once it answers
                     if now >= due:
@@ -347,7 +395,10 @@ class Runner:
                 if not in_flight and not pings:
                     time.sleep(0.1)  # only pings waiting for their time
                     continue
-                ready, _ = ray.wait(list(in_flight) + list(pings), num_returns=1, timeout=0.5)
+                refs = list(in_flight) + list(pings)
+                ready, _ = ray.wait(refs, num_returns=len(refs), timeout=0)  # everything that is back: one commit for all
+                if not ready:
+                    ready, _ = ray.wait(refs, num_returns=1, timeout=0.5)
                 for ref in ready:
                     if ref in pings:
                         actor = pings.pop(ref)
@@ -357,110 +408,121 @@ class Runner:
                         except ray.exceptions.RayActorError:
                             ping_due[actor] = time.perf_counter() + 0.5
                         continue
-                    s, item_id, key, attempt, a = in_flight.pop(ref)
+                    s, a, batch = in_flight.pop(ref)
                     load[s][a] -= 1
                     try:
-                        res = ray.get(ref)
-                    except Exception as e:  # noqa: BLE001 - any item failure is retried, then recorded
-                        if isinstance(e, ray.exceptions.RayActorError):
-                            if (s, a) not in triage.down:  # its first lost call: ping it until it is back
-                                ping_due[(s, a)] = time.perf_counter() + 0.5
+                        results = ray.get(ref)
+                    except ray.exceptions.RayActorError as e:  # the actor died: every item of the call is lost with it
+                        if (s, a) not in triage.down:  # its first lost call: ping it until it is back
+                            ping_due[(s, a)] = time.perf_counter() + 0.5
+                        for item_id, key, attempt in batch:
                             blame = triage.lost((s, a), (s, item_id))
                             triage.finished((s, a), (s, item_id), ok=False)
                             if not blame:  # lost with the actor, not (yet) known to be its fault
                                 attempts[(s, item_id)] -= 1
                                 queues[s].appendleft(key)
                                 continue
-                        else:
-                            triage.finished((s, a), (s, item_id), ok=False)
-                        if attempt < self.cfg.execution.max_attempts:
-                            queues[s].appendleft(key)
-                            continue
-                        cause = getattr(e, "cause", None) or e
-                        detail = (str(cause).strip().splitlines() or [type(cause).__name__])[-1][:300]
-                        stores[s].record(ItemRecord(item=item_id, status="failed", attempts=attempt,
-                                                    reason=type(cause).__name__, detail=detail))
-                        self.stats.failed[s] += 1
-                        self._check_failures(stores, s)
-                    else:
-                        triage.finished((s, a), (s, item_id), ok=True)
-                        stores[s].record(ItemRecord(item=item_id, status="done", output=res["output"], checksum=res["checksum"],
-                                                    seconds=res["seconds"], attempts=attempt, info=res["info"]))
-                        if s == "features":
-                            self._prune(stores, item_id)
-                        self.stats.done[s] += 1
-                        self.stats.compute[s] += res["seconds"]
-                    queued.discard((s, str(key) if s == "write" else item_id))
-                    if s == "write":
-                        shards_left.discard(key)
-                    else:
-                        enqueue_episode(key)
-                        enqueue_ready_shards({self.shard_of[key]})  # only the finished episode's shard can have become ready
+                            settle(s, item_id, key, attempt, (None, 0.0, type(e).__name__, _one_line(e)))
+                        continue
+                    for (item_id, key, attempt), result in zip(batch, results):
+                        triage.finished((s, a), (s, item_id), ok=result[0] is not None)
+                        settle(s, item_id, key, attempt, result)
+                for store in stores.values():  # durable before any work that builds on them is sent
+                    store.flush()
                 now = time.perf_counter()
                 if now - last_print >= self.interval:
                     last_print = now
-                    self._print_progress(stores, enabled)
+                    self._print_progress(stores)
         finally:
             for refs in pools.values():
                 for actor in refs:
                     ray.kill(actor)
-        self._print_progress(stores, enabled)
+        self._print_progress(stores)
 
-    def _prune(self, stores: dict[str, ManifestStore], eid: str) -> None:
-        """With ``render.keep_frames: false``, drop a featurised episode's images and re-record
-        the render item with the slim file's checksum."""
-        rec = stores["render"].items.get(eid)
-        if self.cfg.render.keep_frames or rec is None or rec.info.get("pruned"):
-            return
-        path = stage_dir(self.run_dir, "render") / rec.output
-        prune_frames(path)
-        stores["render"].record(rec.model_copy(update={"checksum": file_sha256(path), "info": {**rec.info, "pruned": True}}))
+    def _batch_size(self, s: str) -> int:
+        """Items per actor call for stage ``s``: one until a few are measured, then as many as
+        make a call of about ``CALL_SECONDS`` (real stages take seconds an item: one; no-op-like
+        stages: up to ``MAX_BATCH``, so Ray's cost per call is shared by many items)."""
+        done = self.stats.done[s]
+        if done < 4:
+            return 1
+        per_item = self.stats.compute[s] / done
+        return int(min(MAX_BATCH, max(1, CALL_SECONDS / max(per_item, 1e-9))))
 
-    def _print_progress(self, stores: dict[str, ManifestStore], enabled: list[str]) -> None:
+    def _release(self, stores: dict[str, ManifestStore], eid: str) -> None:
+        """Let each stage that declares ``release`` slim its output of ``eid`` once the next
+        stage has that episode done (re-recorded with the new checksum and payload)."""
+        for i, st in enumerate(self.chain[:-1]):
+            if st.release is None or not stores[self.chain[i + 1].name].done(eid):
+                continue
+            rec = stores[st.name].items.get(eid)
+            if rec is None or rec.status != "done":
+                continue
+            out = st.release(self.run_dir, self.cfg, rec)
+            if out is not None:
+                stores[st.name].record(rec.model_copy(update={"output": out.output, "checksum": out.checksum,
+                                                               "info": out.info.model_dump(mode="json")}), durable=False)
+
+    def _print_progress(self, stores: dict[str, ManifestStore]) -> None:
         lines = []
-        for s in enabled:
-            total = self._planned(stores, s) if s != "write" else len(self.plan)
-            already = len(stores[s].items) - self.stats.done[s] - self.stats.failed[s]
+        for s in self.enabled:
+            total = len(self.plan) if self.group is not None and s == self.group.name else self._planned(stores, s)
+            already = len(stores[s].status) - self.stats.done[s] - self.stats.failed[s]
             lines.append(self.stats.line(s, total, already))
         self.say(" | ".join(lines))
 
     def _check_failures(self, stores: dict[str, ManifestStore], s: str) -> None:
-        c = stores[s].manifest.items.values()
-        failed = sum(r.status == "failed" for r in c)
-        n = len(stores[s].manifest.items)
+        c = stores[s].counts
+        failed, n = c.failed, c.done + c.failed
         if n >= 10 and failed / n > self.cfg.execution.max_failure_ratio:
             raise RunAborted(f"stage {s}: {failed} of {n} items failed, above execution.max_failure_ratio="
                              f"{self.cfg.execution.max_failure_ratio}; see `anchordp3 inspect {self.run_dir} {s}`")
 
-    def _start_pools(self, enabled: list[str], queues: dict[str, deque]) -> dict[str, list]:
-        ensure_ray(self.opts.address, self.cfg)
+    def _start_pools(self, enabled: list[str]) -> dict[str, list]:
+        ensure_ray(self.opts.address, self.cfg, self.graph)
         resources = ray.cluster_resources()
         gpus_available = resources.get("GPU", 0) > 0
-        need = sum(getattr(self.cfg.execution.pools, s).cpus * (self.opts.workers or getattr(self.cfg.execution.pools, s).workers) for s in enabled)
+        def pool(s: str):
+            return self.cfg.execution.pools.of(s, self.graph[s].resources)
+
+        need = sum(pool(s).cpus * (self.opts.workers or pool(s).workers) for s in enabled)
         if need > resources.get("CPU", 0) + 1e-9:
             raise ValueError(f"execution.pools: the pools reserve {need:g} CPUs but the Ray cluster has {resources.get('CPU', 0):g}; "
                              "lower workers or cpus per stage (actors hold their CPUs for the whole run)")
         pools = {}
         for s in enabled:
-            pc = getattr(self.cfg.execution.pools, s)
+            pc = pool(s)
             n = self.opts.workers or pc.workers
             gpus = pc.gpus if pc.gpus is not None else (1.0 / n if s == "render" and gpus_available else 0.0)
             if gpus > 0 and not gpus_available:
                 raise ValueError(f"execution.pools.{s}.gpus: {gpus} GPUs asked for, but the Ray cluster has none")
             pools[s] = [StageWorker.options(num_cpus=pc.cpus, num_gpus=gpus, max_restarts=-1, max_task_retries=0)
-                        .remote(s, str(self.run_dir.resolve()), self.cfg.model_dump_json(), self.opts.faults) for _ in range(n)]
+                        .remote(self.graph[s], str(self.run_dir.resolve()), self.cfg.model_dump_json(), self.opts.faults) for _ in range(n)]
         return pools
 
-    def _finalize(self, stores: dict[str, ManifestStore]) -> None:
-        st = stores["write"]
-        if st.done(INDEX_ITEM) or not all(st.done(f"shard/{k:05d}") for k in range(len(self.plan))):
+    def _finish(self, stores: dict[str, ManifestStore]) -> None:
+        """The group stage's finishing item, once every group is done."""
+        st, store = self.group, stores[self.group.name]
+        if st.finish is None or store.done(st.finish_item) or not all(store.done(_group_id(k)) for k in range(len(self.plan))):
             return
         t0 = time.perf_counter()
-        records = [ShardRecord.model_validate(st.items[f"shard/{k:05d}"].info["shard"]) for k in range(len(self.plan))]
-        info = finalize(stage_dir(self.run_dir, "write"), records, self.cfg.write)
-        st.record(ItemRecord(item=INDEX_ITEM, status="done", output="dataset.json",
-                             checksum=file_sha256(stage_dir(self.run_dir, "write") / "dataset.json"),
-                             seconds=time.perf_counter() - t0, info={"samples": info.counts.samples, "episodes": info.counts.episodes}))
+        out = st.finish(self.run_dir, self.cfg, [store.items[_group_id(k)] for k in range(len(self.plan))])
+        store.record(_done_record(st.finish_item, out, time.perf_counter() - t0, 1))
+
+
+def _one_line(e: BaseException) -> str:
+    """The last line of an exception's message (its type when it has none), at most 300 characters."""
+    return (str(e).strip().splitlines() or [type(e).__name__])[-1][:300]
+
+
+def _group_id(k: int) -> str:
+    """Item id of group ``k`` of a group stage: ``shard/00002``."""
+    return f"shard/{k:05d}"
+
+
+def _done_record(item_id: str, out: StageOutput, seconds: float, attempt: int) -> ItemRecord:
+    return ItemRecord(item=item_id, status="done", output=out.output, checksum=out.checksum, seconds=seconds,
+                      attempts=attempt, info=out.info.model_dump(mode="json"))
 
 
 class _TokenAuthNotice(logging.Filter):
@@ -470,7 +532,7 @@ class _TokenAuthNotice(logging.Filter):
         return not record.getMessage().startswith("Token authentication is enabled")
 
 
-def ensure_ray(address: str | None, cfg: RunConfig | None = None) -> None:
+def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph = DATA_GRAPH) -> None:
     """Connect to Ray: the running instance if any, a cluster at ``address``, or a new local one
     with enough logical CPUs for every pool (CPU counts are reservations, not a speed limit)."""
     if ray.is_initialized():
@@ -480,7 +542,8 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None) -> None:
         return
     need = 0.0
     if cfg is not None:
-        need = sum(getattr(cfg.execution.pools, s).cpus * getattr(cfg.execution.pools, s).workers for s in DATA_STAGES)
+        pools = [cfg.execution.pools.of(st.name, st.resources) for st in graph.stages]
+        need = sum(p.cpus * p.workers for p in pools)
     # A new local Ray enables token authentication by default and warns that it did: nothing a
     # user needs to act on, so that one message is dropped. It listens on loopback only.
     logging.getLogger("ray._private.authentication.authentication_token_setup").addFilter(_TokenAuthNotice())
@@ -488,14 +551,16 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None) -> None:
              log_to_driver=False, object_store_memory=100 * 1024**2, _node_ip_address="127.0.0.1")
 
 
-def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(), say: Callable[[str], None] = lambda m: print(m, file=sys.stderr)) -> dict:
-    """Run (or resume) the data stages of ``cfg`` in ``run_dir``; returns per-stage counts."""
-    unknown = [s for s in opts.stages if s not in DATA_STAGES]
+def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(),
+                 say: Callable[[str], None] = lambda m: print(m, file=sys.stderr), graph: Graph = DATA_GRAPH) -> dict:
+    """Run (or resume) the stages of ``graph`` (the data stages) for ``cfg`` in ``run_dir``;
+    returns per-stage counts."""
+    unknown = [s for s in (opts.stages or ()) if s not in graph.names]
     if unknown:
-        raise ValueError(f"--stages: unknown stage {unknown[0]!r}; choose from {', '.join(DATA_STAGES)}")
-    if opts.from_stage and opts.from_stage not in DATA_STAGES:
-        raise ValueError(f"--from-stage: unknown stage {opts.from_stage!r}; choose from {', '.join(DATA_STAGES)}")
+        raise ValueError(f"--stages: unknown stage {unknown[0]!r}; choose from {', '.join(graph.names)}")
+    if opts.from_stage and opts.from_stage not in graph.names:
+        raise ValueError(f"--from-stage: unknown stage {opts.from_stage!r}; choose from {', '.join(graph.names)}")
     from anchordp3.pipeline.inspect import check_task_names
 
     check_task_names(cfg)
-    return Runner(cfg, run_dir, opts, say).run()
+    return Runner(cfg, run_dir, opts, say, graph).run()

@@ -3,8 +3,8 @@
 
 The folder holds, per model, ``model.pt`` (the policy with its EMA weights only, the classifier
 with only the tensors that differ from the encoder its package ships, large weights in float16),
-``manifest.json`` and
-``training.yaml``; beside them ``run_config.yaml`` (the data config the models were trained on:
+``manifest.json`` (its manifest as JSON, every record inline) and ``training.yaml``; beside them
+``run_config.yaml`` (the data config the models were trained on:
 world, features and plan of the evaluation) and ``SHIPPED.md`` (where they came from, with the
 command that made them and their sizes). Written to a temporary folder and renamed, so a
 half-shipped folder never replaces a good one.
@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from anchordp3.pipeline.evaluation import PRETRAINED_DIR, RUN_CONFIG_FILE
+from anchordp3.pipeline.store import MANIFEST, read_manifest
 from anchordp3.pipeline.training import MODELS, TRAINING_FILE, model_dir, trained_model
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.training_loop import load_checkpoint
@@ -65,10 +66,11 @@ def ship_models(run_dir: Path, dest: Path | None = None, command: str = "") -> s
             raise FileNotFoundError(f"{model_dir(run_dir, name)}: no trained {name}; run `anchordp3 train all --run-dir {run_dir}`")
         blob = slim_checkpoint(name, found[0])
         atomic_write_bytes(tmp / name / "model.pt", blob)
-        for extra in ("manifest.json", TRAINING_FILE):
-            src = model_dir(run_dir, name) / extra
-            if src.is_file():
-                atomic_write_bytes(tmp / name / extra, src.read_bytes())
+        manifest = read_manifest(model_dir(run_dir, name))  # shipped as JSON, every record inline (a format read_manifest reads)
+        atomic_write_bytes(tmp / name / MANIFEST, manifest.model_dump_json(indent=1).encode())
+        src = model_dir(run_dir, name) / TRAINING_FILE
+        if src.is_file():
+            atomic_write_bytes(tmp / name / TRAINING_FILE, src.read_bytes())
         sizes[name] = len(blob)
     atomic_write_bytes(tmp / RUN_CONFIG_FILE, (run_dir / "config.yaml").read_bytes())
     total = sum(sizes.values())

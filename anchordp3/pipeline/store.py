@@ -1,34 +1,153 @@
-"""A stage's manifest on disk: ``manifest.json`` plus an append-only journal of item records.
+"""A stage's manifest on disk: one SQLite file, ``records.sqlite``, with its totals and one row per item.
 
-Each finished item appends one JSON line to ``journal.jsonl`` and fsyncs it, after its output is
-durable; so a crash at any instant leaves at worst an orphan output (redone on resume, same
-bytes) and at worst a torn last journal line (ignored on load). ``compact()`` folds the journal
-into ``manifest.json`` (written atomically) and empties the journal.
+Layout: a ``meta`` table (stage, fingerprint, planned, complete, and the running totals done /
+failed / seconds) and an ``items`` table (item id, status, seconds, the ``ItemRecord`` as JSON).
+Every write is a transaction committed with ``synchronous=FULL`` in WAL mode: a record is on disk
+once ``record`` (or ``flush`` after ``record(..., durable=False)``) returns, a crash at any instant
+leaves the last committed state, and readers (``anchordp3 status`` while a run goes on) never
+block the writer. The totals live in ``meta`` and are updated in the same transaction as the
+records, so ``read_summary`` answers from a few rows however large the stage, and the writer's
+cost per record does not grow with the run.
+
+The writer keeps only each item's status in memory (``ManifestStore.items`` is a lazy view that
+reads a record from the file when asked). Folders written before this format (``manifest.json``
+with every record inline, plus ``journal.jsonl``) are read as they are, and migrated into
+``records.sqlite`` the first time they are opened for writing.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import shutil
+import sqlite3
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 
 from pydantic import ValidationError
 
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord, StageCounts, StageManifest
-from anchordp3.stages.files import atomic_write_bytes
 
-MANIFEST = "manifest.json"
-JOURNAL = "journal.jsonl"
+RECORDS = "records.sqlite"
+MANIFEST = "manifest.json"  # the earlier format (read, and migrated on the first write)
+JOURNAL = "journal.jsonl"   # the earlier format's journal
+STORE_FILES = (RECORDS, MANIFEST, JOURNAL)
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS items (item TEXT PRIMARY KEY, status TEXT NOT NULL, seconds REAL NOT NULL, record TEXT NOT NULL);
+"""
 
 
 class StaleStageError(ValueError):
     """A stage's existing outputs were made with a different fingerprint."""
 
 
-def read_manifest(stage_dir: Path) -> StageManifest | None:
-    """The stage's manifest with the journal folded in; None when the stage never ran."""
+def has_manifest(stage_dir: Path) -> bool:
+    """Whether ``stage_dir`` holds a stage manifest (either format)."""
+    return any((Path(stage_dir) / f).is_file() for f in STORE_FILES)
+
+
+# ---------------------------------------------------------------------------------- reading
+def read_summary(stage_dir: Path) -> StageManifest | None:
+    """The stage's fingerprint, totals and completeness without its records (``items`` empty);
+    None when the stage never ran. Costs a few rows of a file however many items it holds."""
     stage_dir = Path(stage_dir)
+    if (stage_dir / RECORDS).is_file():
+        with _reader(stage_dir / RECORDS) as db:
+            return _summary(db, stage_dir / RECORDS)
+    m = _read_legacy(stage_dir)
+    if m is not None:
+        m.items = {}
+    return m
+
+
+def read_manifest(stage_dir: Path) -> StageManifest | None:
+    """The stage's manifest with every record (sorted by item id); None when the stage never ran."""
+    stage_dir = Path(stage_dir)
+    if (stage_dir / RECORDS).is_file():
+        path = stage_dir / RECORDS
+        with _reader(path) as db:
+            m = _summary(db, path)
+            m.items = {item: _parse(rec, path) for item, rec in db.execute("SELECT item, record FROM items ORDER BY item")}
+        return m
+    return _read_legacy(stage_dir)
+
+
+def read_records(stage_dir: Path, status: str | None = None, slowest: bool = False, limit: int = 0) -> list[ItemRecord]:
+    """Some of a stage's records without reading the rest: those of one ``status`` (None: any),
+    sorted by item id or, ``slowest``, by seconds (most first), at most ``limit`` (0: all)."""
+    stage_dir = Path(stage_dir)
+    if not (stage_dir / RECORDS).is_file():
+        m = _read_legacy(stage_dir)
+        recs = [r for r in (m.items.values() if m else []) if status is None or r.status == status]
+        recs = sorted(recs, key=lambda r: -r.seconds) if slowest else recs
+        return recs[:limit] if limit > 0 else recs
+    sql = "SELECT record FROM items" + (" WHERE status = ?" if status else "") + (" ORDER BY seconds DESC, item" if slowest else " ORDER BY item")
+    sql += f" LIMIT {int(limit)}" if limit > 0 else ""
+    with _reader(stage_dir / RECORDS) as db:
+        return [_parse(text, stage_dir / RECORDS) for (text,) in db.execute(sql, (status,) if status else ())]
+
+
+def read_record(stage_dir: Path, item: str) -> ItemRecord | None:
+    """The record of one item (None when the stage has none), without reading the others."""
+    stage_dir = Path(stage_dir)
+    if not (stage_dir / RECORDS).is_file():
+        m = _read_legacy(stage_dir)
+        return m.items.get(item) if m else None
+    with _reader(stage_dir / RECORDS) as db:
+        row = db.execute("SELECT record FROM items WHERE item = ?", (item,)).fetchone()
+    return None if row is None else _parse(row[0], stage_dir / RECORDS)
+
+
+def count_records(stage_dir: Path) -> int:
+    """Items recorded so far (durable), read while a run may be writing."""
+    m = read_summary(stage_dir) if has_manifest(stage_dir) else None
+    return 0 if m is None else m.counts.done + m.counts.failed
+
+
+class _reader:
+    """A read-only connection (``mode=ro``; ``immutable`` where the folder cannot be written, as
+    an installed package's)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def __enter__(self) -> sqlite3.Connection:
+        try:
+            self.db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True)
+            self.db.execute("SELECT 1 FROM meta LIMIT 1")
+        except sqlite3.DatabaseError as e:
+            try:
+                self.db = sqlite3.connect(f"file:{self.path}?immutable=1", uri=True)
+                self.db.execute("SELECT 1 FROM meta LIMIT 1")
+            except sqlite3.DatabaseError:
+                raise ValueError(f"{self.path}: not a stage manifest ({e})") from None
+        return self.db
+
+    def __exit__(self, *exc) -> None:
+        self.db.close()
+
+
+def _summary(db: sqlite3.Connection, path: Path) -> StageManifest:
+    meta = dict(db.execute("SELECT key, value FROM meta"))
+    try:
+        fp = Fingerprint.model_validate_json(meta["fingerprint"])
+        counts = StageCounts(planned=int(meta["planned"]), done=int(meta["done"]), failed=int(meta["failed"]),
+                             seconds=float(meta["seconds"]))
+        return StageManifest(stage=meta["stage"], fingerprint=fp, complete=meta["complete"] == "1", counts=counts)
+    except (KeyError, ValueError) as e:
+        raise ValueError(f"{path}: not a stage manifest (meta: {str(e).splitlines()[0]})") from None
+
+
+def _parse(text: str | bytes, path: Path) -> ItemRecord:
+    try:
+        return ItemRecord.model_validate_json(text)
+    except ValidationError as e:
+        err = e.errors()[0]
+        raise ValueError(f"{path}: a bad item record ({'.'.join(map(str, err['loc']))}: {err['msg']})") from None
+
+
+def _read_legacy(stage_dir: Path) -> StageManifest | None:
+    """A manifest of the earlier format: ``manifest.json`` (every record inline) and ``journal.jsonl``."""
     path = stage_dir / MANIFEST
     manifest = None
     if path.is_file():
@@ -53,7 +172,10 @@ def read_manifest(stage_dir: Path) -> StageManifest | None:
             manifest.items[rec.item] = rec
     if manifest is not None:
         manifest.items = dict(sorted(manifest.items.items()))
-        _recount(manifest)
+        recs = manifest.items.values()
+        manifest.counts = StageCounts(planned=max(manifest.counts.planned, len(manifest.items)),
+                                      done=sum(r.status == "done" for r in recs), failed=sum(r.status == "failed" for r in recs),
+                                      seconds=sum(r.seconds for r in recs))
     return manifest
 
 
@@ -66,14 +188,41 @@ def _journal_head(path: Path, line: bytes) -> dict:
         raise ValueError(f"{path}: not a stage journal (bad first line)") from None
 
 
-def _recount(m: StageManifest) -> None:
-    recs = m.items.values()
-    m.counts = StageCounts(planned=max(m.counts.planned, len(m.items)), done=sum(r.status == "done" for r in recs),
-                           failed=sum(r.status == "failed" for r in recs), seconds=sum(r.seconds for r in recs))
+# ---------------------------------------------------------------------------------- writing
+class RecordView(Mapping):
+    """The records of an open store by item id: statuses from memory, each record read from the
+    file only when asked for (``get``, ``[]``, ``values``)."""
+
+    def __init__(self, store: ManifestStore):
+        self._store = store
+
+    def __getitem__(self, item: str) -> ItemRecord:
+        rec = self._store.get(item)
+        if rec is None:
+            raise KeyError(item)
+        return rec
+
+    def get(self, item: str, default=None):
+        return self._store.get(item) if item in self._store.status else default
+
+    def __contains__(self, item) -> bool:
+        return item in self._store.status
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(sorted(self._store.status))
+
+    def __len__(self) -> int:
+        return len(self._store.status)
+
+    def values(self):
+        return [r for _, r in self._store.records()]
+
+    def items(self):
+        return list(self._store.records())
 
 
 class ManifestStore:
-    """The manifest of one stage of one run, opened for writing.
+    """The manifest of one stage of one run, opened for writing (one writer at a time: the run lock).
 
     fingerprint: what the outputs about to be written depend on. Opening a stage whose stored
     fingerprint differs raises ``StaleStageError`` unless ``reset`` (then its folder is emptied) or
@@ -81,69 +230,163 @@ class ManifestStore:
 
     def __init__(self, stage_dir: Path, stage: str, fingerprint: Fingerprint, reset: bool = False, adopt: bool = False):
         self.dir, self.stage, self.fingerprint = Path(stage_dir), stage, fingerprint
-        existing = read_manifest(self.dir) if self.dir.exists() else None
-        adopted = False
-        if existing is not None and existing.fingerprint != fingerprint:
-            if not (reset or adopt):
-                raise StaleStageError(f"stage {stage}: its outputs were made with a different config or code version")
-            if reset:
-                existing = None
-            else:
-                existing.fingerprint, adopted = fingerprint, True
+        existing = read_summary(self.dir) if self.dir.exists() else None
+        if existing is not None and existing.fingerprint != fingerprint and not (reset or adopt):
+            raise StaleStageError(f"stage {stage}: its outputs were made with a different config or code version")
         if reset and self.dir.exists():
             shutil.rmtree(self.dir)
+            existing = None
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.manifest = existing or StageManifest(stage=stage, fingerprint=fingerprint)
-        self._journal = None
-        if adopted:
-            self.compact(existing.counts.planned, existing.complete)
+        if existing is not None and not (self.dir / RECORDS).is_file():
+            self._migrate()
+        self.db = sqlite3.connect(self.dir / RECORDS, isolation_level=None)
+        self.db.execute("PRAGMA journal_mode=WAL")
+        self.db.execute("PRAGMA synchronous=FULL")
+        self.db.executescript(_SCHEMA)
+        self.status: dict[str, str] = dict(self.db.execute("SELECT item, status FROM items"))
+        self.counts = StageCounts()
+        self.complete = False
+        if existing is not None:
+            self.counts, self.complete = existing.counts.model_copy(), existing.complete
+        self._pending: dict[str, ItemRecord] = {}
+        with _transaction(self.db):  # the fingerprint is on disk before any output of this writer is
+            self._put_meta(self._meta())
+
+    # ------------------------------------------------------------------------------ reading
+    @property
+    def items(self) -> RecordView:
+        """Records so far, by item id (lazy: read from the file when asked)."""
+        return RecordView(self)
 
     @property
-    def items(self) -> dict[str, ItemRecord]:
-        """Records so far, by item id."""
-        return self.manifest.items
+    def manifest(self) -> StageManifest:
+        """Fingerprint, totals and completeness (``items`` left empty: use ``items``)."""
+        return StageManifest(stage=self.stage, fingerprint=self.fingerprint, complete=self.complete, counts=self.counts.model_copy())
 
     def done(self, item: str) -> bool:
         """Whether ``item`` has a durable output."""
-        r = self.manifest.items.get(item)
-        return r is not None and r.status == "done"
+        return self.status.get(item) == "done"
 
-    def record(self, rec: ItemRecord) -> None:
-        """Append ``rec`` durably (call only after the item's output is durable)."""
-        if self._journal is None:
-            path = self.dir / JOURNAL
-            fresh = not path.exists() or path.stat().st_size == 0
-            self._journal = open(path, "ab")
-            if fresh:
-                head = {"stage": self.stage, "fingerprint": self.fingerprint.model_dump(mode="json")}
-                self._journal.write(json.dumps(head).encode() + b"\n")
-        self._journal.write(rec.model_dump_json().encode() + b"\n")
-        self._journal.flush()
-        os.fsync(self._journal.fileno())
-        self.manifest.items[rec.item] = rec
+    def get(self, item: str) -> ItemRecord | None:
+        """The record of ``item`` (None when it has none)."""
+        if item in self._pending:
+            return self._pending[item]
+        row = self.db.execute("SELECT record FROM items WHERE item = ?", (item,)).fetchone()
+        return None if row is None else _parse(row[0], self.dir / RECORDS)
+
+    def records(self) -> Iterator[tuple[str, ItemRecord]]:
+        """Every ``(item, record)``, sorted by item id."""
+        self.flush()
+        for item, text in self.db.execute("SELECT item, record FROM items ORDER BY item").fetchall():
+            yield item, _parse(text, self.dir / RECORDS)
+
+    # ------------------------------------------------------------------------------ writing
+    def record(self, rec: ItemRecord, durable: bool = True) -> None:
+        """Add ``rec`` (call only after the item's output is durable). ``durable``: commit now;
+        else it is committed by the next ``flush`` (several records, one transaction)."""
+        old = self.status.get(rec.item)
+        prev = self._pending.get(rec.item) or (self.get(rec.item) if old is not None else None)
+        self._count(prev, -1)
+        self._count(rec, +1)
+        self.status[rec.item] = rec.status
+        self._pending[rec.item] = rec
+        if durable:
+            self.flush()
+
+    def record_many(self, recs: Iterable[ItemRecord]) -> None:
+        """Add several records in one transaction."""
+        for rec in recs:
+            self.record(rec, durable=False)
+        self.flush()
+
+    def flush(self) -> None:
+        """Commit the records added with ``durable=False``, and the totals, in one transaction."""
+        if self._pending:
+            self._commit()
+
+    def _commit(self) -> None:
+        rows = [(r.item, r.status, r.seconds, r.model_dump_json()) for r in self._pending.values()]
+        with _transaction(self.db):
+            self.db.executemany("INSERT OR REPLACE INTO items VALUES (?, ?, ?, ?)", rows)
+            self._put_meta(self._meta())
+        self._pending.clear()
 
     def forget(self, items: list[str]) -> None:
-        """Drop the records of ``items`` (they will be redone), durably."""
-        for i in items:
-            self.manifest.items.pop(i, None)
-        self.compact(self.manifest.counts.planned, False)
+        """Drop the records of ``items`` (they will be redone), durably; the stage is no longer complete."""
+        self.flush()
+        for item in items:
+            if item in self.status:
+                self._count(self.get(item), -1)
+                del self.status[item]
+        self.complete = False
+        with _transaction(self.db):
+            self.db.executemany("DELETE FROM items WHERE item = ?", [(i,) for i in items])
+            self._put_meta(self._meta())
 
-    def compact(self, planned: int, complete: bool) -> StageManifest:
-        """Write ``manifest.json`` with every record and empty the journal."""
-        m = self.manifest
-        m.items = dict(sorted(m.items.items()))
-        m.counts.planned = planned
-        _recount(m)
-        m.counts.planned = planned
-        m.complete = complete
-        atomic_write_bytes(self.dir / MANIFEST, m.model_dump_json(indent=1).encode())
-        if self._journal is not None:
-            self._journal.close()
-            self._journal = None
-        (self.dir / JOURNAL).unlink(missing_ok=True)
-        return m
+    def finish(self, planned: int, complete: bool) -> StageManifest:
+        """Commit what is pending with the stage's planned count and completeness; returns the summary."""
+        self.counts.planned = max(planned, len(self.status))
+        self.complete = complete
+        self._commit()
+        return self.manifest
 
     def close(self) -> None:
-        if self._journal is not None:
-            self._journal.close()
-            self._journal = None
+        """Commit what is pending and close the file."""
+        if getattr(self, "db", None) is not None:
+            self.flush()
+            self.db.close()
+            self.db = None
+
+    # ------------------------------------------------------------------------------ helpers
+    def _count(self, rec: ItemRecord | None, sign: int) -> None:
+        if rec is None:
+            return
+        if rec.status == "done":
+            self.counts.done += sign
+        else:
+            self.counts.failed += sign
+        self.counts.seconds = max(self.counts.seconds + sign * rec.seconds, 0.0)
+
+    def _meta(self) -> dict[str, str]:
+        c = self.counts
+        return {"stage": self.stage, "fingerprint": self.fingerprint.model_dump_json(), "planned": str(max(c.planned, len(self.status))),
+                "complete": "1" if self.complete else "0", "done": str(c.done), "failed": str(c.failed), "seconds": repr(c.seconds)}
+
+    def _put_meta(self, meta: dict[str, str]) -> None:
+        self.db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", list(meta.items()))
+
+    def _migrate(self) -> None:
+        """Move a folder of the earlier format into ``records.sqlite`` (built under a temporary name
+        and renamed, so a crash leaves either format whole), then drop the old files."""
+        old = _read_legacy(self.dir)
+        tmp = self.dir / (RECORDS + ".tmp")
+        tmp.unlink(missing_ok=True)
+        db = sqlite3.connect(tmp, isolation_level=None)
+        try:
+            db.executescript(_SCHEMA)
+            with _transaction(db):
+                db.executemany("INSERT INTO items VALUES (?, ?, ?, ?)",
+                               [(r.item, r.status, r.seconds, r.model_dump_json()) for r in old.items.values()])
+                c = old.counts
+                meta = {"stage": old.stage, "fingerprint": old.fingerprint.model_dump_json(), "planned": str(c.planned),
+                        "complete": "1" if old.complete else "0", "done": str(c.done), "failed": str(c.failed), "seconds": repr(c.seconds)}
+                db.executemany("INSERT INTO meta VALUES (?, ?)", list(meta.items()))
+        finally:
+            db.close()
+        tmp.replace(self.dir / RECORDS)
+        for name in (MANIFEST, JOURNAL):
+            (self.dir / name).unlink(missing_ok=True)
+
+
+class _transaction:
+    """``BEGIN IMMEDIATE`` … ``COMMIT`` (``ROLLBACK`` on error) on an autocommit connection."""
+
+    def __init__(self, db: sqlite3.Connection):
+        self.db = db
+
+    def __enter__(self):
+        self.db.execute("BEGIN IMMEDIATE")
+        return self.db
+
+    def __exit__(self, exc_type, *exc) -> None:
+        self.db.execute("ROLLBACK" if exc_type else "COMMIT")

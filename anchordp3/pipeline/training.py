@@ -4,7 +4,7 @@
 ``config.yaml`` and its dataset (``<run>/dataset``, complete), then trains each model in that
 order through its stage function (``stages.train_*``). Each model folder holds ``model.pt``,
 ``metrics.csv``, ``tensorboard/``, ``loss.png``, ``training.yaml`` (the resolved config) and a
-``StageManifest`` (``manifest.json``, stage ``train-<name>``) with one item, the model: final
+manifest (``records.sqlite``, stage ``train-<name>``) with one item, the model: final
 validation metrics, steps, wall time, and the checkpoint's path and sha256.
 
 Fingerprint of a model = code version + hash of what its weights depend on (seed, mixed
@@ -37,6 +37,7 @@ from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_manife
 from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.dataset import INFO_FILE
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
+from anchordp3.schemas.records import ModelInfo
 from anchordp3.schemas.run import config_hash, load_run_config
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 from anchordp3.schemas.training import TrainingConfig, training_preset
@@ -220,9 +221,9 @@ def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDatas
     try:
         if store.done(name):
             rec = store.items[name]
-            say(f"{name}: up to date ({format_metrics(rec.info.get('metrics', {}))})")
+            say(f"{name}: up to date ({format_metrics(rec.payload(ModelInfo).metrics)})")
             return Trained(name, "up-to-date", rec)
-        store.compact(1, False)  # the fingerprint is on disk before any checkpoint is
+        store.finish(1, False)  # the fingerprint is on disk before any checkpoint is
         atomic_write_bytes(d / TRAINING_FILE, yaml.safe_dump(model_config_part(cfg, name), sort_keys=False).encode())
         t0 = time.perf_counter()
         digest = fp.digest()
@@ -240,14 +241,13 @@ def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDatas
             result = train_policy(data, cfg, d, device, channel, digest, say, stop_at)
         if not result.finished:
             return Trained(name, "stopped", None, result)
-        info = {"metrics": result.metrics, "steps": result.step, "train_seconds": round(result.seconds, 2),
-                "device": str(device), "checkpoint": str(Path(MODELS_DIR) / name / MODEL_FILE), "resumed_from": result.resumed_from}
-        if channel is not None:
-            info["critical_channel"] = channel.source
+        info = ModelInfo(metrics=result.metrics, steps=result.step, train_seconds=round(result.seconds, 2), device=str(device),
+                         checkpoint=str(Path(MODELS_DIR) / name / MODEL_FILE), resumed_from=result.resumed_from,
+                         critical_channel=channel.source if channel is not None else None)
         rec = ItemRecord(item=name, status="done", output=MODEL_FILE, checksum=result.checksum,
-                         seconds=time.perf_counter() - t0, info=info)
+                         seconds=time.perf_counter() - t0, info=info.model_dump(mode="json", exclude_none=True))
         store.record(rec)
-        store.compact(1, True)
+        store.finish(1, True)
         say(f"{name}: done in {format_seconds(result.seconds)}: {format_metrics(result.metrics)} -> {result.model_path}")
         return Trained(name, "trained", rec, result)
     finally:
@@ -260,10 +260,10 @@ def training_summary(results: Sequence[Trained]) -> str:
 
     rows = []
     for t in results:
-        info = t.record.info if t.record else {}
         if t.status == "stopped" and t.result is not None:
             rows.append([t.name, t.status, f"{t.result.step}/{t.result.total_steps}", f"{t.result.seconds:.1f}", "", ""])
             continue
-        rows.append([t.name, t.status, info.get("steps", ""), info.get("train_seconds", ""),
-                     format_metrics(info.get("metrics", {})), t.record.output if t.record else ""])
+        info = t.record.payload(ModelInfo) if t.record else None
+        rows.append([t.name, t.status, info.steps if info else "", info.train_seconds if info else "",
+                     format_metrics(info.metrics) if info else "", t.record.output if t.record else ""])
     return text_table(["model", "status", "steps", "train s", "validation", "checkpoint"], rows)

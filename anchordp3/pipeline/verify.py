@@ -19,12 +19,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from anchordp3.dataset.files import file_sha256, tree_checksum
 from anchordp3.pipeline.inspect import check_run_dir, run_config, run_status
 from anchordp3.pipeline.lock import RunLock
-from anchordp3.pipeline.runner import CONFIG_FILE, INDEX_ITEM, RunOptions, run_pipeline
+from anchordp3.pipeline.runner import CONFIG_FILE, RunOptions, run_pipeline
 from anchordp3.pipeline.store import ManifestStore, read_manifest
-from anchordp3.pipeline.work import stage_dir
+from anchordp3.pipeline.work import DATA_STAGES, INDEX_ITEM, stage_dir
 from anchordp3.schemas.dataset import DatasetInfo
 from anchordp3.schemas.manifest import ItemRecord
-from anchordp3.schemas.run import DATA_STAGES
 
 
 class Problem(BaseModel):

@@ -1,83 +1,112 @@
-"""One item of one data stage, as a plain function (the Ray actors in ``actors.py`` call it).
+"""The data stages, declared once: ``DATA_GRAPH`` (rollout → anchors → render → features → write).
 
-Items are small dicts of IDs and paths; every output is written by the stage into the run
-directory, and what comes back is a small result: output path, checksum, facts.
+Each stage's item function is a thin adapter from the runner's typed item (``graph.EpisodeItem``,
+``graph.GroupItem``) to the stage's plain function in ``anchordp3.stages``, returning its output
+path, checksum and typed payload (``schemas.records``). The Ray actors in ``actors.py`` call them;
+nothing here knows about Ray.
 """
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 from anchordp3.dataset.files import file_sha256
+from anchordp3.pipeline.graph import EpisodeItem, Graph, GroupItem, Stage, StageOutput
 from anchordp3.schemas.dataset import ShardMember
-from anchordp3.schemas.episode import EpisodeRecord
+from anchordp3.schemas.manifest import ItemRecord
+from anchordp3.schemas.records import AnchorsInfo, FeaturesInfo, IndexInfo, RenderInfo, RolloutInfo, ShardInfo
 from anchordp3.schemas.run import RunConfig
 from anchordp3.stages.anchors import load_plan, run_anchors
 from anchordp3.stages.features import run_features
 from anchordp3.stages.files import frames_file, plan_file
-from anchordp3.stages.render import run_render
+from anchordp3.stages.render import prune_frames, run_render
 from anchordp3.stages.rollout import rollout
-from anchordp3.stages.write import write_shard
+from anchordp3.stages.write import finalize, shard_plan, write_shard
 
-STAGE_DIRS = {"rollout": "rollout", "anchors": "anchors", "render": "render", "features": "features", "write": "dataset"}
+
+def _rollout(run: Path, cfg: RunConfig, item: EpisodeItem) -> StageOutput:
+    d = stage_dir(run, "rollout")
+    rec = rollout(item.task, item.seed, cfg.world(), cfg.preset, d)
+    checksum = file_sha256(d / rec.arrays) if rec.arrays else None
+    return StageOutput(rec.arrays, checksum, RolloutInfo(kept=rec.success, record=rec))
+
+
+def _anchors(run: Path, cfg: RunConfig, item: EpisodeItem) -> StageOutput:
+    d = stage_dir(run, "anchors")
+    rel = run_anchors(item.get(RolloutInfo).record, stage_dir(run, "rollout"), d, cfg.anchors)
+    plan = load_plan(d / rel)
+    return StageOutput(rel, file_sha256(d / rel),
+                       AnchorsInfo(frames=len(plan), dagger=int(sum(k == "dagger" for k in plan.kind)), anchors=len(plan.anchor_t)))
+
+
+def _render(run: Path, cfg: RunConfig, item: EpisodeItem) -> StageOutput:
+    d = stage_dir(run, "render")
+    rec = item.get(RolloutInfo).record
+    plan = stage_dir(run, "anchors") / plan_file(rec.task, rec.seed)
+    rel = run_render(rec, stage_dir(run, "rollout"), plan, d, cfg.world(), cfg.render, cfg.anchors)
+    return StageOutput(rel, file_sha256(d / rel), RenderInfo())
+
+
+def _release_frames(run: Path, cfg: RunConfig, rec: ItemRecord) -> StageOutput | None:
+    """With ``render.keep_frames: false``, drop a featurised episode's images (the slim file's
+    checksum and ``pruned`` go into the render record)."""
+    if cfg.render.keep_frames or rec.payload(RenderInfo).pruned:
+        return None
+    path = stage_dir(run, "render") / rec.output
+    prune_frames(path)
+    return StageOutput(rec.output, file_sha256(path), RenderInfo(pruned=True))
+
+
+def _features(run: Path, cfg: RunConfig, item: EpisodeItem) -> StageOutput:
+    d = stage_dir(run, "features")
+    frames = stage_dir(run, "render") / frames_file(item.task, item.seed)
+    rel = run_features(item.task, item.seed, frames, d, cfg.features)
+    return StageOutput(rel, file_sha256(d / rel), FeaturesInfo())
+
+
+def _shards(cfg: RunConfig, episodes) -> list[list[ShardMember]]:
+    return shard_plan(episodes, cfg.write)
+
+
+def _write(run: Path, cfg: RunConfig, item: GroupItem) -> StageOutput:
+    members, failed = [], []
+    for m, ep in zip(item.members, item.episodes):
+        text = ep.get(RolloutInfo).record.instruction if ep.inputs else ""
+        members.append(m.model_copy(update={"instruction": text}))
+        if not ep.ok:
+            failed.append((m.task, m.seed))
+    rec = write_shard(item.index, members, stage_dir(run, "features"), stage_dir(run, "write"), cfg.write,
+                      tasks=sorted(set(cfg.tasks)), failed=failed)  # the plan's task list (write.plan_tasks)
+    return StageOutput(rec.path, rec.checksum, ShardInfo(samples=rec.samples, shard=rec))
+
+
+def _index(run: Path, cfg: RunConfig, records: list[ItemRecord]) -> StageOutput:
+    d = stage_dir(run, "write")
+    info = finalize(d, [r.payload(ShardInfo).shard for r in records], cfg.write)
+    return StageOutput("dataset.json", file_sha256(d / "dataset.json"),
+                       IndexInfo(samples=info.counts.samples, episodes=info.counts.episodes))
+
+
+INDEX_ITEM = "dataset"  # the write stage's last item: index, statistics, dataset.json
+
+
+def _part(name: str):
+    return lambda cfg: cfg.stage_config(name)
+
+
+DATA_GRAPH = Graph((
+    Stage("rollout", "rollout", _rollout, RolloutInfo, rollout.__module__, _part("rollout")),
+    Stage("anchors", "anchors", _anchors, AnchorsInfo, run_anchors.__module__, _part("anchors"), needs=(RolloutInfo,)),
+    Stage("render", "render", _render, RenderInfo, run_render.__module__, _part("render"), needs=(RolloutInfo,),
+          release=_release_frames),
+    Stage("features", "features", _features, FeaturesInfo, run_features.__module__, _part("features")),
+    Stage("write", "dataset", _write, ShardInfo, write_shard.__module__, _part("write"), needs=(RolloutInfo,),
+          group=_shards, finish=_index, finish_item=INDEX_ITEM, finish_record=IndexInfo),
+))
+DATA_STAGES: tuple[str, ...] = DATA_GRAPH.names
+STAGE_DIRS = {s.name: s.folder for s in DATA_GRAPH.stages}
 
 
 def stage_dir(run_dir: Path, stage: str) -> Path:
-    """Folder of ``stage`` in a run directory."""
+    """Folder of data stage ``stage`` in a run directory."""
     return Path(run_dir) / STAGE_DIRS[stage]
-
-
-def run_item(stage: str, run_dir: Path, cfg: RunConfig, item: dict) -> dict:
-    """Do ``item`` of ``stage``; returns ``{output, checksum, seconds, info}``.
-
-    Raises whatever the stage raises (the caller retries and records failures)."""
-    t0 = time.perf_counter()
-    out = _STAGES[stage](Path(run_dir), cfg, item)
-    out["seconds"] = time.perf_counter() - t0
-    return out
-
-
-def _rollout(run: Path, cfg: RunConfig, item: dict) -> dict:
-    d = stage_dir(run, "rollout")
-    rec = rollout(item["task"], int(item["seed"]), cfg.world(), cfg.preset, d)
-    checksum = file_sha256(d / rec.arrays) if rec.arrays else None
-    return {"output": rec.arrays, "checksum": checksum, "info": {"kept": rec.success, "record": rec.model_dump(mode="json")}}
-
-
-def _anchors(run: Path, cfg: RunConfig, item: dict) -> dict:
-    d = stage_dir(run, "anchors")
-    rec = EpisodeRecord.model_validate(item["record"])
-    rel = run_anchors(rec, stage_dir(run, "rollout"), d, cfg.anchors)
-    plan = load_plan(d / rel)
-    return {"output": rel, "checksum": file_sha256(d / rel),
-            "info": {"frames": len(plan), "dagger": sum(k == "dagger" for k in plan.kind), "anchors": len(plan.anchor_t)}}
-
-
-def _render(run: Path, cfg: RunConfig, item: dict) -> dict:
-    d = stage_dir(run, "render")
-    rec = EpisodeRecord.model_validate(item["record"])
-    plan = stage_dir(run, "anchors") / plan_file(rec.task, rec.seed)
-    rel = run_render(rec, stage_dir(run, "rollout"), plan, d, cfg.world(), cfg.render, cfg.anchors)
-    return {"output": rel, "checksum": file_sha256(d / rel), "info": {}}
-
-
-def _features(run: Path, cfg: RunConfig, item: dict) -> dict:
-    d = stage_dir(run, "features")
-    frames = stage_dir(run, "render") / frames_file(item["task"], int(item["seed"]))
-    rel = run_features(item["task"], int(item["seed"]), frames, d, cfg.features)
-    return {"output": rel, "checksum": file_sha256(d / rel), "info": {}}
-
-
-def _write(run: Path, cfg: RunConfig, item: dict) -> dict:
-    members = [ShardMember.model_validate(m) for m in item["members"]]
-    rec = write_shard(int(item["shard"]), members, stage_dir(run, "features"), stage_dir(run, "write"), cfg.write,
-                      tasks=item["tasks"], failed=[tuple(x) for x in item["failed"]])
-    return {"output": rec.path, "checksum": rec.checksum, "info": {"samples": rec.samples, "shard": rec.model_dump(mode="json")}}
-
-
-_STAGES = {"rollout": _rollout, "anchors": _anchors, "render": _render, "features": _features, "write": _write}
-
-# The module whose code (with all it imports) makes each stage's outputs: its fingerprint's code_hash.
-STAGE_CODE = {"rollout": rollout.__module__, "anchors": run_anchors.__module__, "render": run_render.__module__,
-              "features": run_features.__module__, "write": write_shard.__module__}

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
+
+if TYPE_CHECKING:
+    from anchordp3.schemas.records import Payload
+
+P = TypeVar("P", bound="Payload")
 
 MANIFEST_SCHEMA_VERSION = 1
 ItemStatus = Literal["done", "failed"]
@@ -52,7 +57,12 @@ class ItemRecord(BaseModel):
     attempts: int = Field(default=1, ge=1, description="Tries made.")
     reason: str | None = Field(default=None, description="Failure reason class (exception type or stage reason).")
     detail: str = Field(default="", description="Failure message, one line.")
-    info: dict = Field(default_factory=dict, description="Small stage-specific facts (e.g. kept, frames, samples).")
+    info: dict = Field(default_factory=dict, description="The stage's own facts, its payload model as JSON "
+                                                      "(schemas.records: read them with ``payload``).")
+
+    def payload(self, model: type[P]) -> P:
+        """``info`` as its stage's payload model, e.g. ``rec.payload(RolloutInfo).record.steps``."""
+        return model.model_validate(self.info)
 
 
 class StageCounts(BaseModel):
@@ -67,7 +77,7 @@ class StageCounts(BaseModel):
 
 
 class StageManifest(BaseModel):
-    """A stage's manifest (``<run>/<stage>/manifest.json``)."""
+    """A stage's manifest (``<run>/<stage>/records.sqlite``, read and written by ``pipeline.store``)."""
 
     model_config = ConfigDict(extra="forbid")
 

@@ -18,10 +18,6 @@ from anchordp3.schemas.sim import SimConfig, WorldConfig
 from anchordp3.schemas.randomization import preset as preset_config
 from anchordp3.schemas.stages import AnchorsConfig, FeaturesConfig, RenderConfig
 
-DATA_STAGES: tuple[str, ...] = ("rollout", "anchors", "render", "features", "write")
-StageName = Literal["rollout", "anchors", "render", "features", "write"]
-
-
 class PoolConfig(BaseModel):
     """A stage's pool of Ray actors."""
 
@@ -42,6 +38,11 @@ class PoolsConfig(BaseModel):
     render: PoolConfig = Field(default_factory=PoolConfig, description="Replays with rendering.")
     features: PoolConfig = Field(default_factory=PoolConfig, description="Point-cloud features.")
     write: PoolConfig = Field(default_factory=lambda: PoolConfig(cpus=0.5), description="Shard writers.")
+
+    def of(self, stage: str, default: PoolConfig | None = None) -> PoolConfig:
+        """The pool of ``stage``; a stage without a field here (e.g. a synthetic one) gets ``default``
+        (its declared resources), else the default pool."""
+        return getattr(self, stage, None) or default or PoolConfig()
 
 
 class ExecutionConfig(BaseModel):

@@ -18,7 +18,7 @@ from anchordp3.pipeline.evaluation import (
     wilson_interval,
 )
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
-from anchordp3.pipeline.store import read_manifest
+from anchordp3.pipeline.store import has_manifest, read_manifest
 from anchordp3.pipeline.training import MODELS, train_models
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.training import TrainingConfig
@@ -150,4 +150,4 @@ def test_a_truncated_model_file_is_refused_in_one_line_naming_it(trained_run, tm
     assert res.exit_code == 2, res.output
     lines = [line for line in res.output.splitlines() if line.strip()]
     assert len(lines) == 1 and "policy/model.pt" in lines[0] and "not a readable checkpoint" in lines[0]
-    assert not (tmp_path / "ev" / "manifest.json").exists()
+    assert not has_manifest(tmp_path / "ev")

@@ -13,6 +13,7 @@ from anchordp3.pipeline.experiment import dense_arm, dense_frame_count, dense_se
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.experiment import ExperimentConfig, load_experiment_config
+from anchordp3.schemas.records import RolloutInfo
 from anchordp3.schemas.run import RunConfig
 from tiny_models import tiny_data, tiny_training
 
@@ -60,7 +61,7 @@ def test_the_experiment_runs_both_arms_at_the_same_render_budget(ray_session, tm
     assert results["trajectories_per_budget_ratio"] == pytest.approx(
         (a["trajectories"] / a["frames"]) / (d["trajectories"] / d["frames"]))
     frames = rendered_frames(tmp_path / "dense")
-    steps = {k: r.info["record"]["steps"] for k, r in read_manifest(stage_dir(tmp_path / "dense", "rollout")).items.items()}
+    steps = {k: r.payload(RolloutInfo).record.steps for k, r in read_manifest(stage_dir(tmp_path / "dense", "rollout")).items.items()}
     assert all(n == dense_frame_count(steps[f"{t}/{s:06d}"], 12) for (t, s), n in frames.items())
     # both arms trained and evaluated on the same seeds
     seeds = {arm: [json.loads(p.read_text())["seed"] for p in sorted((tmp_path / arm / "eval" / "episodes").rglob("*.json"))]

@@ -21,8 +21,9 @@ from anchordp3.pipeline.report import dataset_content_hash
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.work import stage_dir
-from anchordp3.schemas.manifest import Fingerprint, ItemRecord, StageManifest
-from anchordp3.schemas.run import DATA_STAGES, RunConfig
+from anchordp3.schemas.manifest import ItemRecord, StageManifest
+from anchordp3.pipeline.work import DATA_STAGES
+from anchordp3.schemas.run import RunConfig
 
 TINY = {
     "name": "tiny", "tasks": ["place_mouse"], "seeds": "0-1", "cameras": {"width": 64, "height": 48},
@@ -152,11 +153,10 @@ def test_unknown_stage_item_or_run_is_one_line_naming_it_with_exit_2(run, args, 
 
 
 def test_failure_groups_count_by_reason_with_one_example():
-    fp = Fingerprint(code_version="0", config_hash="x")
     items = {f"t/{i:06d}": ItemRecord(item=f"t/{i:06d}", status="failed", reason=r, detail=f"d{i}")
              for i, r in enumerate(["IKError", "Timeout", "IKError", "IKError"])}
     items["t/000009"] = ItemRecord(item="t/000009", status="done")
-    groups = failure_groups(StageManifest(stage="render", fingerprint=fp, items=items))
+    groups = failure_groups(items.values())
     assert groups == [("IKError", 3, "t/000000", "d0"), ("Timeout", 1, "t/000001", "d1")]
 
 

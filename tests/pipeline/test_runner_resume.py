@@ -17,8 +17,9 @@ import yaml
 from anchordp3.pipeline.lock import RunLock
 from anchordp3.pipeline.report import dataset_content_hash
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
-from anchordp3.pipeline.store import StaleStageError, read_manifest
+from anchordp3.pipeline.store import StaleStageError, count_records, read_manifest
 from anchordp3.pipeline.work import stage_dir
+from anchordp3.schemas.records import ShardInfo
 from anchordp3.schemas.run import RunConfig
 
 TINY = {
@@ -66,9 +67,11 @@ def test_rerunning_a_finished_run_redoes_nothing(reference):
     assert dataset_content_hash(run) == h
 
 
-def _journal_lines(run: Path, stage: str) -> int:
-    j = stage_dir(run, stage) / "journal.jsonl"
-    return max(0, len(j.read_bytes().splitlines()) - 1) if j.exists() else 0
+def _records(run: Path, stage: str) -> int:
+    try:
+        return count_records(stage_dir(run, stage))
+    except ValueError:  # the file is being created
+        return 0
 
 
 @pytest.mark.parametrize("stage, records", [("rollout", 1), ("render", 1), ("features", 3)])
@@ -81,7 +84,7 @@ def test_sigkill_then_resume_gives_the_uninterrupted_dataset(reference, tmp_path
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.time() + 240
-        while _journal_lines(run, stage) < records and proc.poll() is None and time.time() < deadline:
+        while _records(run, stage) < records and proc.poll() is None and time.time() < deadline:
             time.sleep(0.05)
         assert proc.poll() is None, "the run finished before it could be killed"
         os.killpg(proc.pid, signal.SIGKILL)
@@ -107,7 +110,7 @@ def test_injected_faults_are_retried_then_recorded_as_failed(ray_session, tmp_pa
     assert crashed.status == "failed" and crashed.attempts == 2
     info = read_manifest(stage_dir(tmp_path, "write"))
     assert info.complete  # the dataset was still written, without the two failed episodes
-    dropped = sorted(d for r in info.items.values() if r.item.startswith("shard/") for d in r.info["shard"]["dropped"])
+    dropped = sorted(d for r in info.items.values() if r.item.startswith("shard/") for d in r.payload(ShardInfo).shard.dropped)
     assert dropped == ["place_bell/000001", "place_mouse/000001"]
 
 

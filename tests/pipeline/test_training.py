@@ -22,6 +22,7 @@ from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.training import MODELS, load_training_config, model_dir, train_models
 from anchordp3.pipeline.work import stage_dir
+from anchordp3.schemas.records import ModelInfo
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.tasks import task_id
 from anchordp3.schemas.training import TrainingConfig
@@ -82,22 +83,22 @@ def test_train_all_writes_each_model_with_its_manifest(trained):
         rec = m.items[name]
         assert rec.status == "done" and rec.output == "model.pt"
         assert rec.checksum == file_sha256(d / "model.pt")
-        per_task = {k for k in rec.info["metrics"] if "/" in k}  # first_cm/<task>, first_rad/<task>
-        assert set(rec.info["metrics"]) - per_task == want[name] and rec.info["steps"] == TRAIN[name]["optim"]["steps"]
+        per_task = {k for k in rec.payload(ModelInfo).metrics if "/" in k}  # first_cm/<task>, first_rad/<task>
+        assert set(rec.payload(ModelInfo).metrics) - per_task == want[name] and rec.payload(ModelInfo).steps == TRAIN[name]["optim"]["steps"]
         assert all(k.split("/")[0] in ("first_cm", "first_rad") for k in per_task)
-        assert rec.info["checkpoint"] == f"models/{name}/model.pt"
+        assert rec.payload(ModelInfo).checkpoint == f"models/{name}/model.pt"
         assert m.fingerprint.upstream.get("dataset") == (None if name == "classifier" else dataset_sum)
         assert (d / "loss.png").read_bytes()[:4] == b"\x89PNG"
         assert list((d / "tensorboard").glob("events.out.tfevents.*"))
         assert (d / "training.yaml").is_file() and not (d / "checkpoints").exists()
         rows = read_metrics(d / "metrics.csv")
-        assert {int(r["step"]) for r in rows if r["metric"] == "loss" and r["split"] == "train"} == set(range(1, rec.info["steps"] + 1))
+        assert {int(r["step"]) for r in rows if r["metric"] == "loss" and r["split"] == "train"} == set(range(1, rec.payload(ModelInfo).steps + 1))
         assert any(r["split"] == "val" for r in rows)
     policy = read_manifest(model_dir(run, "policy"))
-    assert policy.items["policy"].info["critical_channel"] == "segmenter"
+    assert policy.items["policy"].payload(ModelInfo).critical_channel == "segmenter"
     assert policy.fingerprint.upstream["segmenter"] == read_manifest(model_dir(run, "segmenter")).items["segmenter"].checksum
     assert any("steps/s" in line and "ETA" in line for line in lines)
-    assert 0.0 <= read_manifest(model_dir(run, "segmenter")).items["segmenter"].info["metrics"]["iou"] <= 1.0
+    assert 0.0 <= read_manifest(model_dir(run, "segmenter")).items["segmenter"].payload(ModelInfo).metrics["iou"] <= 1.0
 
 
 def test_training_losses_fall(trained):
@@ -148,7 +149,7 @@ def test_checkpoints_load_back_to_identical_outputs(trained, tmp_path):
 
     texts, labels = generate_instructions(cfg.classifier.instructions).texts_and_labels("val")
     accuracy = int((clf.predict(texts).cpu() == torch.tensor(labels)).sum()) / len(labels)
-    assert accuracy == pytest.approx(read_manifest(clf_dir).items["classifier"].info["metrics"]["accuracy"], abs=1e-9)
+    assert accuracy == pytest.approx(read_manifest(clf_dir).items["classifier"].payload(ModelInfo).metrics["accuracy"], abs=1e-9)
 
 
 def test_stopped_or_crashed_training_resumes_to_the_same_step_and_weights(trained, tmp_path, monkeypatch):
@@ -198,8 +199,8 @@ def test_pipeline_stop_then_rerun_resumes_and_stale_models_are_refused(trained, 
     first = train_models(run, ["segmenter"], cfg, say=QUIET, stop_at={"segmenter": 10})
     assert first[0].status == "stopped" and not read_manifest(model_dir(run, "segmenter")).complete
     again = train_models(run, ["segmenter"], cfg, say=QUIET)
-    assert again[0].status == "trained" and again[0].record.info["resumed_from"] == 10
-    assert again[0].record.info["steps"] == TRAIN["segmenter"]["optim"]["steps"]
+    assert again[0].status == "trained" and again[0].record.payload(ModelInfo).resumed_from == 10
+    assert again[0].record.payload(ModelInfo).steps == TRAIN["segmenter"]["optim"]["steps"]
     # same config, same dataset, same code: the weights match the uninterrupted run's
     assert load_checkpoint(model_dir(run, "segmenter") / "model.pt")["step"] == 40
     ref = load_checkpoint(model_dir(src, "segmenter") / "model.pt")["state_dict"]
@@ -209,7 +210,7 @@ def test_pipeline_stop_then_rerun_resumes_and_stale_models_are_refused(trained, 
     with pytest.raises(ValueError, match="different training config; pass --force"):
         train_models(run, ["segmenter"], load_training_config(train_yaml, steps=5), say=QUIET)
     forced = train_models(run, ["segmenter"], load_training_config(train_yaml, steps=5), force=True, say=QUIET)
-    assert forced[0].status == "trained" and forced[0].record.info["steps"] == 5
+    assert forced[0].status == "trained" and forced[0].record.payload(ModelInfo).steps == 5
     with pytest.raises(ValueError, match="different segmenter"):  # the policy's channel came from the old one
         train_models(run, ["policy"], cfg, say=QUIET)
 

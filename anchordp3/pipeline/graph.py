@@ -1,0 +1,140 @@
+"""The stage graph: every data stage declared once, as data; the runner is generic over it.
+
+A ``Stage`` says what the stage is called, where its outputs live, the plain function that does
+one item, the payload model of its records, what it needs from earlier stages, the module whose
+code makes its outputs (its fingerprint), and the part of the run config they depend on.
+
+A ``Graph`` is a chain of *episode* stages (one item per ``(task, seed)``; an episode goes from
+one to the next while each record ``continues``) and at most one last *group* stage (one item per
+group of episodes, ready once every member is resolved, then one finishing item over all groups).
+``pipeline.work`` declares the data graph; ``pipeline.noop`` a synthetic one for measuring the
+runner itself. Adding a stage is adding one ``Stage`` (its function and payload beside it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from anchordp3.schemas.manifest import P
+from anchordp3.schemas.records import Payload
+from anchordp3.schemas.run import PoolConfig, RunConfig
+
+
+@dataclass(frozen=True)
+class EpisodeItem:
+    """One episode as a stage's input: its id and the payloads of the stages it ``needs``.
+
+    ``ok`` (group members only): the episode made it through every episode stage."""
+
+    task: str
+    seed: int
+    inputs: tuple[Payload, ...] = ()
+    ok: bool = True
+
+    def get(self, model: type[P]) -> P:
+        """The input of type ``model`` (a payload the stage declared in ``needs``)."""
+        for p in self.inputs:
+            if isinstance(p, model):
+                return p
+        raise LookupError(f"{model.__name__}: not an input of this item (declare it in the stage's needs)")
+
+
+@dataclass(frozen=True)
+class GroupItem:
+    """One group of a group stage: the plan's members (``.task``, ``.seed`` and whatever else the
+    stage's ``group`` function gives them) and, in the same order, each as an ``EpisodeItem``."""
+
+    index: int
+    members: tuple[Any, ...]
+    episodes: tuple[EpisodeItem, ...]
+
+
+@dataclass(frozen=True)
+class StageOutput:
+    """What one item of a stage produced: its output file (relative to the stage folder), that
+    file's sha256, and the stage's payload."""
+
+    output: str | None
+    checksum: str | None
+    info: Payload
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One declared stage.
+
+    run: ``(run_dir, cfg, item) -> StageOutput``, item an ``EpisodeItem`` or (group stages) a
+    ``GroupItem``; a plain function that writes into ``folder`` and raises on failure.
+    config: the part of the run config the outputs depend on (hashed into the fingerprint).
+    code: the module whose source, with everything it imports from the package, makes the outputs.
+    needs: payload models of earlier stages whose records each item carries (``EpisodeItem.get``).
+    group: group stages only: ``(cfg, episodes) -> groups``, each a list of members with
+    ``.task`` and ``.seed``, fixed by the set of episodes alone.
+    finish: group stages only: ``(run_dir, cfg, group records) -> StageOutput``, the stage's last
+    item (``finish_item``), run in the driver once every group is done.
+    release: ``(run_dir, cfg, record) -> StageOutput | None``, run in the driver once the next
+    stage has the episode's output: may slim this stage's output (None: nothing to do).
+    resources: the stage's actor pool when the run config has none for it (``execution.pools``)."""
+
+    name: str
+    folder: str
+    run: Callable[[Path, RunConfig, Any], StageOutput]
+    record: type[Payload]
+    code: str
+    config: Callable[[RunConfig], dict]
+    needs: tuple[type[Payload], ...] = ()
+    group: Callable[[RunConfig, Sequence[tuple[str, int]]], list[list[Any]]] | None = None
+    finish: Callable[[Path, RunConfig, list], StageOutput] | None = None
+    finish_item: str = "final"
+    finish_record: type[Payload] | None = None
+    release: Callable[[Path, RunConfig, Any], StageOutput | None] | None = None
+    resources: PoolConfig = field(default_factory=PoolConfig)
+
+
+@dataclass(frozen=True)
+class Graph:
+    """Episode stages in order, then at most one group stage."""
+
+    stages: tuple[Stage, ...]
+    names: tuple[str, ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "names", tuple(s.name for s in self.stages))
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"stage graph: duplicate stage names in {self.names}")
+        groups = [i for i, s in enumerate(self.stages) if s.group is not None]
+        if groups and groups != [len(self.stages) - 1]:
+            raise ValueError("stage graph: only the last stage may be a group stage")
+        produced: list[type[Payload]] = []
+        for s in self.stages:
+            missing = [m.__name__ for m in s.needs if m not in produced]
+            if missing:
+                raise ValueError(f"stage graph: {s.name} needs {missing}, which no earlier stage records")
+            produced.append(s.record)
+
+    def __getitem__(self, name: str) -> Stage:
+        for s in self.stages:
+            if s.name == name:
+                return s
+        raise KeyError(f"unknown stage {name!r}; choose from {', '.join(self.names)}")
+
+    @property
+    def episode_stages(self) -> tuple[Stage, ...]:
+        return tuple(s for s in self.stages if s.group is None)
+
+    @property
+    def group_stage(self) -> Stage | None:
+        last = self.stages[-1] if self.stages else None
+        return last if last is not None and last.group is not None else None
+
+    def upstream(self, name: str) -> str | None:
+        """The stage before ``name`` (None for the first)."""
+        i = self.names.index(name)
+        return self.names[i - 1] if i else None
+
+    def producer(self, model: type[Payload]) -> str:
+        """The stage whose records are ``model``."""
+        return next(s.name for s in self.stages if s.record is model)

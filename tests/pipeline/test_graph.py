@@ -1,0 +1,84 @@
+"""The declared stage graph and the generic runner over it, on a real Ray with synthetic stages:
+episodes stop where a record says so, groups wait for their members, a stage added to a graph
+runs with nothing else changed, and a finished run redoes nothing."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+from pydantic import Field
+from ray import cloudpickle
+
+from anchordp3.pipeline.graph import EpisodeItem, Graph, Stage, StageOutput
+from anchordp3.pipeline.noop import NOOP_GROUP, NOOP_STOP_EVERY, NoopFinalInfo, NoopFirstInfo, NoopGroupInfo, NoopStepInfo, noop_graph
+from anchordp3.pipeline.runner import RunOptions, run_pipeline
+from anchordp3.pipeline.store import read_manifest
+from anchordp3.pipeline.work import DATA_GRAPH
+from anchordp3.schemas.records import Payload, RolloutInfo
+from anchordp3.schemas.run import PoolConfig, RunConfig
+
+QUIET = lambda m: None  # noqa: E731
+CFG = RunConfig(name="graph", tasks=["place_mouse", "place_bell"], seeds="0-39")
+
+
+def _records(run: Path, graph: Graph, stage: str) -> dict:
+    return read_manifest(run / graph[stage].folder).items
+
+
+def test_the_data_graph_declares_the_five_stages_in_order():
+    assert DATA_GRAPH.names == ("rollout", "anchors", "render", "features", "write")
+    assert DATA_GRAPH.group_stage.name == "write" and DATA_GRAPH["render"].needs == (RolloutInfo,)
+    assert DATA_GRAPH.producer(RolloutInfo) == "rollout" and DATA_GRAPH["write"].folder == "dataset"
+
+
+def test_a_graph_that_needs_a_later_stage_or_groups_before_the_end_is_refused():
+    first, step, group = noop_graph(2).stages
+    with pytest.raises(ValueError, match="needs"):
+        Graph((step, first, group))
+    with pytest.raises(ValueError, match="last stage"):
+        Graph((first, group, step))
+
+
+def test_episodes_stop_where_a_record_says_and_groups_count_what_went_through(ray_session, tmp_path):
+    graph = noop_graph(3)
+    counts = run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), say=QUIET, graph=graph)
+    n = 2 * 40
+    stopped = {f"{t}/{s:06d}" for t in CFG.tasks for s in range(40) if s % NOOP_STOP_EVERY == 0}
+    first = _records(tmp_path, graph, "noop0")
+    assert len(first) == n and {i for i, r in first.items() if not r.payload(NoopFirstInfo).kept} == stopped
+    for stage in ("noop1", "noop2"):
+        recs = _records(tmp_path, graph, stage)
+        assert set(recs) == set(first) - stopped  # the stopped episodes went no further
+        assert all(r.payload(NoopStepInfo).seed == int(i.rsplit("/", 1)[1]) for i, r in recs.items())
+    groups = _records(tmp_path, graph, "noop_group")
+    final = groups.pop("final").payload(NoopFinalInfo)
+    assert len(groups) == n // NOOP_GROUP and final.groups == len(groups) and final.episodes == n - len(stopped)
+    assert sum(r.payload(NoopGroupInfo).episodes for r in groups.values()) == n - len(stopped)
+    assert counts["noop2"]["done"] == n - len(stopped)
+    before = {s: read_manifest(tmp_path / graph[s].folder).model_dump() for s in graph.names}
+    run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), say=QUIET, graph=graph)  # finished: nothing redone
+    assert {s: read_manifest(tmp_path / graph[s].folder).model_dump() for s in graph.names} == before
+
+
+class TagInfo(Payload):
+    tag: str = Field(description="What the added stage made of the first stage's payload.")
+
+
+def _tag(run: Path, cfg: RunConfig, item: EpisodeItem) -> StageOutput:
+    (run / "tags").mkdir(exist_ok=True)
+    (run / "tags" / f"{item.task}-{item.seed}.txt").write_text(f"seed {item.get(NoopFirstInfo).seed}")
+    return StageOutput(f"{item.task}-{item.seed}.txt", None, TagInfo(tag=f"{item.task}:{item.seed}"))
+
+
+def test_a_stage_added_to_a_graph_runs_with_nothing_else_changed(ray_session, tmp_path):
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the actors cannot import a test module
+    first, step, group = noop_graph(2).stages
+    tag = Stage("tag", "tags", _tag, TagInfo, __name__, lambda cfg: {}, needs=(NoopFirstInfo,), resources=PoolConfig(cpus=0.1))
+    graph = Graph((first, tag, step, group))  # the one change: one more Stage in the list
+    run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), say=QUIET, graph=graph)
+    tags = _records(tmp_path, graph, "tag")
+    assert len(tags) == 2 * 40 - 8 and tags["place_bell/000003"].payload(TagInfo).tag == "place_bell:3"
+    assert (tmp_path / "tags" / "place_bell-3.txt").read_text() == "seed 3"
+    assert set(_records(tmp_path, graph, "noop1")) == set(tags)  # the stage after it runs on what it passed on
