@@ -24,8 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from anchordp3.dataset.reader import open_dataset  # noqa: E402
 from anchordp3.pipeline.runner import RunOptions, run_pipeline  # noqa: E402
 from anchordp3.pipeline.store import read_manifest  # noqa: E402
-from anchordp3.pipeline.work import stage_dir  # noqa: E402
-from anchordp3.pipeline.work import DATA_STAGES  # noqa: E402
+from anchordp3.pipeline.work import DATA_STAGES, stage_dir  # noqa: E402
 from anchordp3.schemas.run import load_run_config  # noqa: E402
 from anchordp3.viz.table import text_table  # noqa: E402
 
