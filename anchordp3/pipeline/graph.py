@@ -89,7 +89,6 @@ class Stage:
     group: Callable[[RunConfig, Sequence[tuple[str, int]]], list[list[Any]]] | None = None
     finish: Callable[[Path, RunConfig, list], StageOutput] | None = None
     finish_item: str = "final"
-    finish_record: type[Payload] | None = None
     release: Callable[[Path, RunConfig, Any], StageOutput | None] | None = None
     resources: PoolConfig = field(default_factory=PoolConfig)
 

@@ -86,5 +86,5 @@ def noop_graph(steps: int = 4) -> Graph:
     chain += [Stage(f"noop{i}", f"noop{i}", _step, NoopStepInfo, __name__, _config, needs=(NoopFirstInfo,), resources=LIGHT)
               for i in range(1, steps)]
     group = Stage("noop_group", "noop_group", _group, NoopGroupInfo, __name__, _config, group=_groups, finish=_final,
-                  finish_item="final", finish_record=NoopFinalInfo, resources=LIGHT)
+                  finish_item="final", resources=LIGHT)
     return Graph((*chain, group))

@@ -101,7 +101,7 @@ DATA_GRAPH = Graph((
           release=_release_frames),
     Stage("features", "features", _features, FeaturesInfo, run_features.__module__, _part("features")),
     Stage("write", "dataset", _write, ShardInfo, write_shard.__module__, _part("write"), needs=(RolloutInfo,),
-          group=_shards, finish=_index, finish_item=INDEX_ITEM, finish_record=IndexInfo),
+          group=_shards, finish=_index, finish_item=INDEX_ITEM),
 ))
 DATA_STAGES: tuple[str, ...] = DATA_GRAPH.names
 STAGE_DIRS = {s.name: s.folder for s in DATA_GRAPH.stages}
