@@ -36,6 +36,11 @@ def parse_faults(text: str) -> dict[tuple[str, str], tuple[int, bool]]:
     return out
 
 
+def one_line(e: BaseException) -> str:
+    """The last line of an exception's message (its type when it has none), at most 300 characters."""
+    return (str(e).strip().splitlines() or [type(e).__name__])[-1][:300]
+
+
 @ray.remote
 class StageWorker:
     """Runs items of one declared stage (``graph.Stage``) for one run directory."""
@@ -66,7 +71,7 @@ class StageWorker:
                 res, seconds = self.run(item_id, item, attempt)
                 out.append((res, seconds, None, ""))
             except Exception as e:  # noqa: BLE001 - the driver retries, then records the failure
-                out.append((None, 0.0, type(e).__name__, (str(e).strip().splitlines() or [type(e).__name__])[-1][:300]))
+                out.append((None, 0.0, type(e).__name__, one_line(e)))
         return out
 
     def ping(self) -> bool:

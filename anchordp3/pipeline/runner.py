@@ -26,7 +26,7 @@ import ray
 import yaml
 
 import anchordp3
-from anchordp3.pipeline.actors import FAULTS_ENV, StageWorker
+from anchordp3.pipeline.actors import FAULTS_ENV, StageWorker, one_line
 from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.graph import EpisodeItem, Graph, GroupItem, Stage, StageOutput
 from anchordp3.pipeline.lock import RunLock
@@ -70,10 +70,12 @@ def fingerprints(cfg: RunConfig, graph: Graph = DATA_GRAPH) -> dict[str, Fingerp
     return out
 
 
-def stage_changes(cfg: RunConfig, run_dir: Path, graph: Graph = DATA_GRAPH) -> dict[str, list[str]]:
+def stage_changes(cfg: RunConfig, run_dir: Path, graph: Graph = DATA_GRAPH,
+                  fps: dict[str, Fingerprint] | None = None) -> dict[str, list[str]]:
     """Stages whose stored outputs were made with another fingerprint than ``cfg`` (and this code)
-    gives, in pipeline order, each with what changed (``Fingerprint.changes``)."""
-    fps = fingerprints(cfg, graph)
+    gives, in pipeline order, each with what changed (``Fingerprint.changes``). ``fps``: those
+    fingerprints when already computed (``fingerprints`` hashes the stages' code)."""
+    fps = fps or fingerprints(cfg, graph)
     out = {}
     for st in graph.stages:
         d = Path(run_dir) / st.folder
@@ -183,7 +185,7 @@ class Runner:
 
     # ----------------------------------------------------------------------------- setup
     def open_stores(self) -> dict[str, ManifestStore]:
-        changes = stage_changes(self.cfg, self.run_dir, self.graph)
+        changes = stage_changes(self.cfg, self.run_dir, self.graph, self.fps)
         redo: set[str] = set()
         if self.opts.from_stage:
             redo |= set(self.names[self.names.index(self.opts.from_stage):])
@@ -422,7 +424,7 @@ class Runner:
                                 attempts[(s, item_id)] -= 1
                                 queues[s].appendleft(key)
                                 continue
-                            settle(s, item_id, key, attempt, (None, 0.0, type(e).__name__, _one_line(e)))
+                            settle(s, item_id, key, attempt, (None, 0.0, type(e).__name__, one_line(e)))
                         continue
                     for (item_id, key, attempt), result in zip(batch, results):
                         triage.finished((s, a), (s, item_id), ok=result[0] is not None)
@@ -508,11 +510,6 @@ class Runner:
         t0 = time.perf_counter()
         out = st.finish(self.run_dir, self.cfg, [store.items[_group_id(k)] for k in range(len(self.plan))])
         store.record(_done_record(st.finish_item, out, time.perf_counter() - t0, 1))
-
-
-def _one_line(e: BaseException) -> str:
-    """The last line of an exception's message (its type when it has none), at most 300 characters."""
-    return (str(e).strip().splitlines() or [type(e).__name__])[-1][:300]
 
 
 def _group_id(k: int) -> str:

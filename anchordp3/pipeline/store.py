@@ -284,9 +284,7 @@ class ManifestStore:
     def record(self, rec: ItemRecord, durable: bool = True) -> None:
         """Add ``rec`` (call only after the item's output is durable). ``durable``: commit now;
         else it is committed by the next ``flush`` (several records, one transaction)."""
-        old = self.status.get(rec.item)
-        prev = self._pending.get(rec.item) or (self.get(rec.item) if old is not None else None)
-        self._count(prev, -1)
+        self._count(self.get(rec.item) if rec.item in self.status else None, -1)
         self._count(rec, +1)
         self.status[rec.item] = rec.status
         self._pending[rec.item] = rec
@@ -348,9 +346,7 @@ class ManifestStore:
         self.counts.seconds = max(self.counts.seconds + sign * rec.seconds, 0.0)
 
     def _meta(self) -> dict[str, str]:
-        c = self.counts
-        return {"stage": self.stage, "fingerprint": self.fingerprint.model_dump_json(), "planned": str(max(c.planned, len(self.status))),
-                "complete": "1" if self.complete else "0", "done": str(c.done), "failed": str(c.failed), "seconds": repr(c.seconds)}
+        return _meta_rows(self.manifest, len(self.status))
 
     def _put_meta(self, meta: dict[str, str]) -> None:
         self.db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", list(meta.items()))
@@ -367,15 +363,19 @@ class ManifestStore:
             with _transaction(db):
                 db.executemany("INSERT INTO items VALUES (?, ?, ?, ?)",
                                [(r.item, r.status, r.seconds, r.model_dump_json()) for r in old.items.values()])
-                c = old.counts
-                meta = {"stage": old.stage, "fingerprint": old.fingerprint.model_dump_json(), "planned": str(c.planned),
-                        "complete": "1" if old.complete else "0", "done": str(c.done), "failed": str(c.failed), "seconds": repr(c.seconds)}
-                db.executemany("INSERT INTO meta VALUES (?, ?)", list(meta.items()))
+                db.executemany("INSERT INTO meta VALUES (?, ?)", list(_meta_rows(old, 0).items()))
         finally:
             db.close()
         tmp.replace(self.dir / RECORDS)
         for name in (MANIFEST, JOURNAL):
             (self.dir / name).unlink(missing_ok=True)
+
+
+def _meta_rows(m: StageManifest, items: int) -> dict[str, str]:
+    """The ``meta`` table of summary ``m`` (planned at least ``items``); ``_summary`` reads it back."""
+    c = m.counts
+    return {"stage": m.stage, "fingerprint": m.fingerprint.model_dump_json(), "planned": str(max(c.planned, items)),
+            "complete": "1" if m.complete else "0", "done": str(c.done), "failed": str(c.failed), "seconds": repr(c.seconds)}
 
 
 class _transaction:
