@@ -12,6 +12,19 @@ from pydantic import ValidationError
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="AnchorDP3 data pipeline: simulated dual-arm data, anchors, policies.")
 
 
+@app.callback()
+def _messages(
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Also show debug messages."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Only warnings and errors (no progress lines)."),
+) -> None:
+    """Messages and progress on stderr (``anchordp3.logs``); results on stdout."""
+    import logging
+
+    from anchordp3.logs import console
+
+    console(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
+
+
 def _one_line(e: Exception) -> str:
     if isinstance(e, ValidationError):
         err = e.errors()[0]
@@ -117,7 +130,7 @@ def run(
     from anchordp3.schemas.run import load_run_config
 
     cfg = load_run_config(config)
-    run_pipeline(cfg, run_dir, _run_options(stages, workers, address, force, from_stage, keep_outputs), say=lambda m: typer.echo(m, err=True))
+    run_pipeline(cfg, run_dir, _run_options(stages, workers, address, force, from_stage, keep_outputs))
     typer.echo(data_summary(run_dir))
 
 
@@ -138,7 +151,7 @@ def stage(
     from anchordp3.schemas.run import load_run_config
 
     cfg = load_run_config(config or run_dir / CONFIG_FILE)
-    run_pipeline(cfg, run_dir, _run_options(name, workers, address, force, None, keep_outputs), say=lambda m: typer.echo(m, err=True))
+    run_pipeline(cfg, run_dir, _run_options(name, workers, address, force, None, keep_outputs))
     typer.echo(data_summary(run_dir))
 
 
@@ -171,7 +184,7 @@ def demo(
     from anchordp3.pipeline.demo import DemoOptions, demo_config, run_demo
 
     opts = DemoOptions(episodes=episodes, max_decisions=max_decisions, train=not data_only, address=address)
-    run_demo(run_dir, demo_config(seeds), say=typer.echo, opts=opts)
+    run_demo(run_dir, demo_config(seeds), opts=opts)
 
 
 @app.command()
@@ -219,7 +232,7 @@ def _verify(run_dir: Path, repair: bool, address: str | None) -> int:
         report = verify_run(run_dir)
         typer.echo(report.text())
         return 0 if report.ok else 1
-    before, after = repair_run(run_dir, address, say=lambda m: typer.echo(m, err=True))
+    before, after = repair_run(run_dir, address)
     if not before.ok:
         typer.echo(before.text() + "\n\nafter repair:")
     typer.echo(after.text())
@@ -266,7 +279,7 @@ def _train(models: list[str], run_dir: Path, config: Path | None, preset: str, s
     from anchordp3.pipeline.training import load_training_config, train_models, training_summary
 
     cfg = load_training_config(config, preset, steps, device)
-    results = train_models(run_dir, models, cfg, force=force, say=lambda m: typer.echo(m, err=True))
+    results = train_models(run_dir, models, cfg, force=force)
     typer.echo(training_summary(results))
 
 
@@ -319,7 +332,7 @@ def eval_(
     opts = EvalOptions(episodes=episodes, workers=workers, max_decisions=max_decisions, device=device, address=address,
                        first_seed=first_seed, through=through, models=models, out=out, preset=preset, seeds=seeds, ddim_steps=ddim_steps,
                        tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()) if tasks else None)
-    records = run_evaluation(run_dir, opts, say=lambda m: typer.echo(m, err=True))
+    records = run_evaluation(run_dir, opts)
     typer.echo(evaluation_summary(records))
     typer.echo(f"report: {(out or Path(run_dir) / 'eval') / 'report.md'}")
 
@@ -339,7 +352,7 @@ def anchors_vs_dense(
     from anchordp3.pipeline.experiment import experiment_report, run_experiment
     from anchordp3.schemas.experiment import load_experiment_config
 
-    results = run_experiment(out, load_experiment_config(config), say=lambda m: typer.echo(m, err=True), address=address)
+    results = run_experiment(out, load_experiment_config(config), address=address)
     typer.echo(experiment_report(results))
     typer.echo(f"report: {out / 'report.md'}")
 
@@ -357,7 +370,7 @@ def recipe(
     from anchordp3.pipeline.recipe import recipe_report, run_recipe
     from anchordp3.schemas.recipe import load_recipe_config
 
-    results = run_recipe(out, load_recipe_config(config), say=lambda m: typer.echo(m, err=True), address=address,
+    results = run_recipe(out, load_recipe_config(config), address=address,
                          keep_outputs=keep_outputs)
     typer.echo(recipe_report(results))
     typer.echo(f"report: {out / 'report.md'}")

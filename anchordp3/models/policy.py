@@ -3,7 +3,9 @@
 Observation: ``points (B, N, 12)`` (11 features + critical probability), ``state (B, 32)``,
 ``task_id (B,)``. With ``gripper_points`` every point also carries its offset from each end
 effector (``gripper_offsets``) before the per-point MLP; with ``object_tokens`` the critical points'
-K clusters (``models.objects``) add their own feature to the condition. The task's own point encoder and the state MLP give the FiLM condition of one
+K clusters (``models.objects``) add their own feature to the condition, and with ``anchored_offsets``
+their offsets from each end effector, gated by the condition, are added to the denoiser's clean
+sample where it holds end-effector positions (``anchored_shift``). The task's own point encoder and the state MLP give the FiLM condition of one
 shared conditional 1-D U-Net, which denoises the ``(B, H, 32)`` anchor sequence with diffusers'
 ``DDIMScheduler`` (DP3's settings: 100 training steps, squaredcos_cap_v2, clip_sample,
 prediction_type ``sample``, 10 inference steps). Training loss: MSE over all H x 32 elements of the
@@ -23,7 +25,7 @@ from torch import nn
 from anchordp3.models.device import autocast
 from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
 from anchordp3.models.normalizer import MinMaxNormalizer
-from anchordp3.models.objects import ObjectTokenEncoder, object_tokens
+from anchordp3.models.objects import POSITION_SCALE, ObjectTokenEncoder, object_tokens
 from anchordp3.models.unet1d import ConditionalUnet1D
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
@@ -77,6 +79,11 @@ class AnchorDiffusionPolicy(nn.Module):
         self.anchor_normalizer = MinMaxNormalizer(config.action_dim)
         self.delta_normalizer = MinMaxNormalizer(config.horizon * config.action_dim)  # relative targets, per slot
         self.noise_scheduler = make_scheduler(config.scheduler)
+        self.anchor_gates = None
+        if config.anchored_offsets:  # one gate per (slot, arm, object); zero: the plain U-Net at the start
+            self.anchor_gates = nn.Linear(config.cond_dim, config.horizon * len(ARMS) * config.object_tokens)
+            nn.init.zeros_(self.anchor_gates.weight)
+            nn.init.zeros_(self.anchor_gates.bias)
 
     # ------------------------------------------------------------------------------ setup
     @property
@@ -111,15 +118,36 @@ class AnchorDiffusionPolicy(nn.Module):
     def encode_observation(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """obs (data units) -> FiLM condition (B, cond_dim): point feature, state feature and, with
         ``object_tokens``, the critical-object tokens' feature."""
+        return self._condition(obs)[0]
+
+    def _condition(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """obs -> (FiLM condition (B, cond_dim), object tokens (B, K, TOKEN_FEATURES) or None)."""
         points, state, task_id = self._observation(obs)
         normed = self.point_normalizer(points)
         if self.config.gripper_points:
             normed = torch.cat([normed, gripper_offsets(points, state, self.layout)], dim=-1)
         parts = [self.point_encoder(normed, task_id), self.state_encoder(self.state_normalizer(state))]
+        tokens = None
         if self.object_encoder is not None:
             tokens = object_tokens(points, state, self.layout, self.config.object_tokens)
             parts.append(self.object_encoder(tokens.to(parts[0].dtype)))
-        return torch.cat(parts, dim=-1)
+        return torch.cat(parts, dim=-1), tokens
+
+    def anchored_shift(self, cond: torch.Tensor, tokens: torch.Tensor | None) -> torch.Tensor:
+        """What ``anchored_offsets`` adds to the denoiser's clean sample, ``(B, H, D)`` in normalised
+        target units (0 without it): in arm a's end-effector xyz of slot h, ``sum_k gate[h, a, k] *
+        (centroid_k - ee_a)`` (metres, the tokens' offsets; an absent object offers 0), the gates a
+        linear function of ``cond (B, cond_dim)``, scaled as the relative-target normaliser scales
+        those dims."""
+        h, d = self.config.horizon, self.config.action_dim
+        shift = cond.new_zeros((cond.shape[0], h, d), dtype=torch.float32)
+        if self.anchor_gates is None or tokens is None:
+            return shift
+        gates = self.anchor_gates(cond.float()).view(-1, h, len(ARMS), self.config.object_tokens)
+        for a, arm in enumerate(ARMS):
+            offsets = tokens[:, :, 3 + 3 * a:6 + 3 * a].float() / POSITION_SCALE  # (B, K, 3): centroid - ee, metres
+            shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a], offsets)
+        return shift * self.delta_normalizer.scale.view(h, d).to(shift.dtype)
 
     def compute_loss(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
         """Diffusion training loss of one batch: MSE over all (B, H, action_dim) elements.
@@ -133,10 +161,10 @@ class AnchorDiffusionPolicy(nn.Module):
         steps = torch.randint(0, self.noise_scheduler.config.num_train_timesteps, (x0.shape[0],), generator=generator).to(self.device)
         noisy = self.noise_scheduler.add_noise(x0, noise, steps)
         with autocast(self.device, self.mixed_precision):
-            cond = self.encode_observation(batch)
+            cond, tokens = self._condition(batch)
             pred = self.unet(noisy, steps, cond)
         target = x0 if self.config.scheduler.prediction_type == "sample" else noise
-        return F.mse_loss(pred.float(), target)
+        return F.mse_loss(pred.float() + self.anchored_shift(cond, tokens), target)
 
     @torch.no_grad()
     def predict(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None,
@@ -150,7 +178,8 @@ class AnchorDiffusionPolicy(nn.Module):
         (``ExponentialMovingAverage.averaged_model``) in evaluation."""
         scheduler = self.noise_scheduler
         with autocast(self.device, self.mixed_precision):
-            cond = self.encode_observation(obs)
+            cond, tokens = self._condition(obs)
+        shift = self.anchored_shift(cond, tokens)
         b = cond.shape[0]
         x = torch.randn((b, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
         steps = self.config.scheduler.num_inference_steps if steps is None else steps
@@ -160,7 +189,7 @@ class AnchorDiffusionPolicy(nn.Module):
         for t in scheduler.timesteps:
             with autocast(self.device, self.mixed_precision):
                 out = self.unet(x, t, cond)
-            x = scheduler.step(out.float(), t, x).prev_sample
+            x = scheduler.step(out.float() + shift, t, x).prev_sample
         return self.from_target(x, torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32))
 
     def to_target(self, anchors: torch.Tensor, state: torch.Tensor) -> torch.Tensor:

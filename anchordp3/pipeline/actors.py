@@ -12,9 +12,11 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import ray
 
+from anchordp3.logs import Capture, WorkerRecord
 from anchordp3.pipeline.graph import Stage, StageOutput
 from anchordp3.schemas.run import RunConfig
 
@@ -34,6 +36,17 @@ def parse_faults(text: str) -> dict[tuple[str, str], tuple[int, bool]]:
             raise ValueError(f"{FAULTS_ENV}: expected stage:item:n[:crash], got {part!r}")
         out[(bits[0], bits[1])] = (int(bits[2]), len(bits) == 4)
     return out
+
+
+class ItemResult(NamedTuple):
+    """What a worker sends back for one item: its output and compute seconds, or (``output``
+    None) the exception's type and last line; and the messages logged while it ran."""
+
+    output: StageOutput | None
+    seconds: float
+    reason: str | None = None
+    detail: str = ""
+    logs: tuple[WorkerRecord, ...] = ()
 
 
 def one_line(e: BaseException) -> str:
@@ -62,16 +75,18 @@ class StageWorker:
         out = self.stage.run(self.run_dir, self.cfg, item)
         return out, time.perf_counter() - t0
 
-    def run_many(self, calls: list[tuple[str, object, int]]) -> list[tuple[StageOutput | None, float, str | None, str]]:
-        """Do each ``(item id, item, attempt)`` in turn: per item ``(output, seconds, None, "")``, or
-        ``(None, 0, exception type, its last line)`` when it raised (the others still run)."""
+    def run_many(self, calls: list[tuple[str, object, int]]) -> list[ItemResult]:
+        """Do each ``(item id, item, attempt)`` in turn (an item that raises does not stop the
+        others): per item its ``ItemResult``, with what was logged while it ran."""
         out = []
         for item_id, item, attempt in calls:
-            try:
-                res, seconds = self.run(item_id, item, attempt)
-                out.append((res, seconds, None, ""))
-            except Exception as e:  # noqa: BLE001 - the driver retries, then records the failure
-                out.append((None, 0.0, type(e).__name__, one_line(e)))
+            with Capture() as cap:
+                try:
+                    res, seconds = self.run(item_id, item, attempt)
+                    result = ItemResult(res, seconds)
+                except Exception as e:  # noqa: BLE001 - the driver retries, then records the failure
+                    result = ItemResult(None, 0.0, type(e).__name__, one_line(e))
+            out.append(result._replace(logs=tuple(cap.records)))
         return out
 
     def ping(self) -> bool:

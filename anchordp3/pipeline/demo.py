@@ -9,9 +9,9 @@ Re-running resumes wherever it stopped.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from anchordp3.pipeline.evaluation import (
     EVAL_DIR,
@@ -27,6 +27,8 @@ from anchordp3.pipeline.show import show_frame
 from anchordp3.pipeline.training import MODELS, load_training_config, train_models, training_summary
 from anchordp3.schemas.run import RunConfig, load_run_config
 from anchordp3.schemas.training import TrainingConfig
+
+log = logging.getLogger(__name__)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 DEMO_CONFIG = CONFIGS / "demo.yaml"
@@ -65,33 +67,33 @@ def demo_config(seeds: str | None = None) -> RunConfig:
     return cfg.model_copy(update={"seeds": seeds}) if seeds else cfg
 
 
-def run_demo(run_dir: Path, cfg: RunConfig, say: Callable[[str], None] = print, opts: DemoOptions = DemoOptions()) -> Path:
+def run_demo(run_dir: Path, cfg: RunConfig, opts: DemoOptions = DemoOptions()) -> Path:
     """Run the demo into ``run_dir`` (resuming if it exists); returns the evaluation report's path
     (or the frame picture's when evaluation is off)."""
     run_dir = Path(run_dir)
-    say("== 1/3 data: rollout → anchors → render → features → write")
-    run_pipeline(cfg, run_dir, RunOptions(address=opts.address), say=say)
-    say(data_summary(run_dir))
+    log.info("== 1/3 data: rollout → anchors → render → features → write")
+    run_pipeline(cfg, run_dir, RunOptions(address=opts.address))
+    log.info(data_summary(run_dir))
     png = show_frame(run_dir, run_dir / "frame.png", frame=1)
-    say(f"\nA rendered frame, its masks and its labelled cloud: {png}")
+    log.info(f"\nA rendered frame, its masks and its labelled cloud: {png}")
     if not opts.train:
         return png
-    say("\n== 2/3 training: segmenter, instruction classifier, anchor diffusion policy")
-    results = train_models(run_dir, MODELS, opts.training or load_training_config(DEMO_TRAINING), say=say)
-    say(training_summary(results))
+    log.info("\n== 2/3 training: segmenter, instruction classifier, anchor diffusion policy")
+    results = train_models(run_dir, MODELS, opts.training or load_training_config(DEMO_TRAINING))
+    log.info(training_summary(results))
     if not opts.evaluate:
         return png
-    say("\n== 3/3 closed-loop evaluation on held-out seeds and instruction phrasings")
+    log.info("\n== 3/3 closed-loop evaluation on held-out seeds and instruction phrasings")
     eval_opts = EvalOptions(episodes=opts.episodes, workers=opts.workers, max_decisions=opts.max_decisions, address=opts.address)
-    records = run_evaluation(run_dir, eval_opts, cfg, say=say)
-    say("\n" + evaluation_summary(records))
+    records = run_evaluation(run_dir, eval_opts, cfg)
+    log.info("\n" + evaluation_summary(records))
     report = run_dir / EVAL_DIR / "report.md"
-    say(f"\nReport: {report} | chart: {run_dir / EVAL_DIR / 'success.png'} | training curves: {run_dir / 'models'}/*/loss.png")
+    log.info(f"\nReport: {report} | chart: {run_dir / EVAL_DIR / 'success.png'} | training curves: {run_dir / 'models'}/*/loss.png")
     if opts.pretrained_episodes and shipped_models_present():
-        say("\n== and the shipped policy (`--models pretrained`, made by configs/recipe.yaml) on the same kind of unseen seeds")
+        log.info("\n== and the shipped policy (`--models pretrained`, made by configs/recipe.yaml) on the same kind of unseen seeds")
         shipped = EvalOptions(models=PRETRAINED, episodes=opts.pretrained_episodes, workers=opts.workers, address=opts.address,
                               max_decisions=opts.max_decisions, out=run_dir / PRETRAINED_EVAL_DIR)
-        say("\n" + evaluation_summary(run_evaluation(None, shipped, say=say)))
-        say(f"Report: {run_dir / PRETRAINED_EVAL_DIR / 'report.md'}")
-    say(f"Inspect the run: anchordp3 status {run_dir} | anchordp3 inspect {run_dir} render | anchordp3 show {run_dir} --frame 3")
+        log.info("\n" + evaluation_summary(run_evaluation(None, shipped)))
+        log.info(f"Report: {run_dir / PRETRAINED_EVAL_DIR / 'report.md'}")
+    log.info(f"Inspect the run: anchordp3 status {run_dir} | anchordp3 inspect {run_dir} render | anchordp3 show {run_dir} --frame 3")
     return report

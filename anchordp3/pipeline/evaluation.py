@@ -11,9 +11,10 @@ and ``report.md``.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,7 @@ import ray
 
 import anchordp3
 from anchordp3.dataset.files import file_sha256
+from anchordp3.logs import Capture, WorkerRecord, replay, to_file
 from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.runner import ensure_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError
@@ -30,8 +32,11 @@ from anchordp3.schemas.episode import parse_seeds
 from anchordp3.schemas.run import RunConfig, config_hash, load_run_config
 from anchordp3.stages.files import atomic_write_bytes
 
+log = logging.getLogger(__name__)
+
 EVAL_DIR = "eval"
 STAGE = "evaluate"
+LOG_FILE = "eval.log"  # the evaluation's messages, its workers' included, appended per invocation
 SEED_OFFSET = 1000
 MODEL_NAMES = ("segmenter", "classifier", "policy")
 PROTOCOL_MODULE = "anchordp3.stages.evaluate"  # the decision loop and how a prediction is carried out
@@ -171,11 +176,15 @@ class EvalWorker:
         self.cfg = RunConfig.model_validate_json(cfg_json)
         self.models = EvalModels(Path(models_dir), device, ddim_steps)
 
-    def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None, through: str) -> dict:
+    def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None,
+            through: str) -> tuple[dict, tuple[WorkerRecord, ...]]:
+        """One episode: its ``EvalRecord`` as a dict, and what was logged while it ran."""
         from anchordp3.stages.evaluate import evaluate_episode
 
         path = self.out / strip if strip else None
-        return evaluate_episode(task, seed, self.models, self.cfg, max_decisions, path, through).to_dict()
+        with Capture() as cap:
+            rec = evaluate_episode(task, seed, self.models, self.cfg, max_decisions, path, through).to_dict()
+        return rec, tuple(cap.records)
 
 
 def check_models(models_dir: Path) -> None:
@@ -205,8 +214,7 @@ def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerp
                        config_hash=config_hash(part), upstream=upstream)
 
 
-def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg: RunConfig | None = None,
-                   say: Callable[[str], None] = print) -> list[dict]:
+def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg: RunConfig | None = None) -> list[dict]:
     """Evaluate (or finish evaluating) the models (``opts.models``, else the run's) on every task
     (``opts.tasks``, else the config's) and seed (``selected_seeds``); returns the per-episode
     records (dicts of ``EvalRecord`` with ``seen``: the seed was a training seed) in task, seed
@@ -220,15 +228,20 @@ def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg:
     else:
         raise ValueError("--out: give an evaluation folder when there is no --run-dir")
     fp = _fingerprint(models_dir, cfg, opts)
+    with to_file(out / LOG_FILE):
+        return _evaluate(models_dir, out, fp, cfg, opts)
+
+
+def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts: EvalOptions) -> list[dict]:
     try:
         store = ManifestStore(out, STAGE, fp)
     except StaleStageError:
-        say("evaluate: the models or settings changed since the last evaluation; starting over")
+        log.info("evaluate: the models or settings changed since the last evaluation; starting over")
         store = ManifestStore(out, STAGE, fp, reset=True)
     seeds = selected_seeds(cfg, opts)
     todo = [(t, s) for t in cfg.tasks for s in seeds]
     pending = [ep for ep in todo if not store.done(episode_item(*ep))]
-    say(f"evaluate: {len(todo)} episodes ({len(todo) - len(pending)} already done), {opts.workers} workers")
+    log.info(f"evaluate: {len(todo)} episodes ({len(todo) - len(pending)} already done), {opts.workers} workers")
     if pending:
         ensure_ray(opts.address)
         n = max(1, min(opts.workers, len(pending)))
@@ -252,7 +265,8 @@ def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg:
             while running:
                 [ref], _ = ray.wait(list(running), num_returns=1)
                 w, ep = running.pop(ref)
-                rec = ray.get(ref)
+                rec, logs = ray.get(ref)
+                replay(logs, f"evaluate {episode_item(*ep)}")
                 rel = f"episodes/{ep[0]}/{ep[1]:06d}.json"
                 atomic_write_bytes(out / rel, json.dumps(rec, indent=1).encode())
                 store.record(ItemRecord(item=episode_item(*ep), status="done", output=rel, checksum=file_sha256(out / rel),
@@ -260,7 +274,7 @@ def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg:
                                             success=rec["success"], steps=rec["steps"], decisions=rec["decisions"],
                                             failure=rec["failure"]).model_dump(mode="json")))
                 finished += 1
-                say(f"evaluate: {ep[0]} seed {ep[1]}: {'success' if rec['success'] else rec['failure']} "
+                log.info(f"evaluate: {ep[0]} seed {ep[1]}: {'success' if rec['success'] else rec['failure']} "
                     f"({rec['steps']} steps, {rec['decisions']} decisions) [{finished}/{len(pending)}, "
                     f"{time.perf_counter() - t0:.0f} s]")
                 if queue:

@@ -19,7 +19,8 @@ render budget, success per task, wall time of each phase).
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 from anchordp3.pipeline.phases import PhaseClock
@@ -32,6 +33,8 @@ from anchordp3.schemas.experiment import ExperimentConfig
 from anchordp3.schemas.records import AnchorsInfo, RolloutInfo
 from anchordp3.schemas.run import RunConfig
 from anchordp3.stages.files import atomic_write_bytes
+
+log = logging.getLogger(__name__)
 
 ARMS = ("anchors", "dense")
 PHASES_FILE = "phases.json"  # wall seconds per arm and phase, summed over invocations
@@ -84,29 +87,29 @@ def dense_arm(cfg: RunConfig, n_seeds: int) -> RunConfig:
     return cfg.model_copy(update={"name": f"{cfg.name}-dense", "seeds": seeds, "anchors": anchors})
 
 
-def run_experiment(out: Path, cfg: ExperimentConfig, say: Callable[[str], None] = print,
+def run_experiment(out: Path, cfg: ExperimentConfig,
                    address: str | None = None) -> dict:
     """Run (or resume) both arms into ``out``; returns the results written to ``results.json``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    clock = PhaseClock(out / PHASES_FILE, ARMS, say)
+    clock = PhaseClock(out / PHASES_FILE, ARMS)
     timed, seconds = clock.timed, clock.seconds
     first_seed = cfg.run.seed_list.last + SEED_OFFSET
 
     runs = {"anchors": cfg.run}
-    timed("anchors", "data", lambda: run_pipeline(cfg.run, out / "anchors", RunOptions(address=address), say=say))
+    timed("anchors", "data", lambda: run_pipeline(cfg.run, out / "anchors", RunOptions(address=address)))
     budget = sum(rendered_frames(out / "anchors").values())
     n = dense_seed_count(cfg.run.tasks, cfg.run.seed_list, kept_steps(out / "anchors"), budget, cfg.run.anchors.dense.frame_stride)
     runs["dense"] = dense_arm(cfg.run, n)
-    say(f"experiment: the anchors arm rendered {budget} frames; the dense arm's plan on {n} seed(s) per task comes nearest")
-    timed("dense", "data", lambda: run_pipeline(runs["dense"], out / "dense", RunOptions(address=address), say=say))
+    log.info(f"experiment: the anchors arm rendered {budget} frames; the dense arm's plan on {n} seed(s) per task comes nearest")
+    timed("dense", "data", lambda: run_pipeline(runs["dense"], out / "dense", RunOptions(address=address)))
 
     records = {}
     for arm in ARMS:
-        timed(arm, "train", lambda: train_models(out / arm, MODELS, cfg.training, say=say))
+        timed(arm, "train", lambda: train_models(out / arm, MODELS, cfg.training))
         opts = EvalOptions(episodes=cfg.eval.episodes, workers=cfg.eval.workers, max_decisions=cfg.eval.max_decisions,
                            address=address, first_seed=first_seed, through=cfg.eval.through)
-        records[arm] = timed(arm, "eval", lambda: run_evaluation(out / arm, opts, runs[arm], say=say))
+        records[arm] = timed(arm, "eval", lambda: run_evaluation(out / arm, opts, runs[arm]))
 
     results = _results(out, runs, records, seconds)
     atomic_write_bytes(out / "results.json", json.dumps(results, indent=1).encode())

@@ -92,12 +92,24 @@ class Stage:
     release: Callable[[Path, RunConfig, Any], StageOutput | None] | None = None
     resources: PoolConfig = field(default_factory=PoolConfig)
 
+    @property
+    def stop_payload(self) -> type[Payload] | None:
+        """The payload model whose ``continues`` may stop an episode at this stage (its manifest
+        indexes those items): ``record`` for an episode stage, None for a group stage."""
+        return self.record if self.group is None else None
+
 
 @dataclass(frozen=True)
 class Graph:
-    """Episode stages in order, then at most one group stage."""
+    """Episode stages in order, then at most one group stage.
+
+    former: earlier layouts of the stages' config parts, each ``cfg -> {stage: part}`` (the
+    stages it leaves out kept their part): outputs fingerprinted under one of them, for the same
+    settings, are the outputs the current layout describes, so a run made then is re-stamped
+    instead of redone (``runner.translate_layout``)."""
 
     stages: tuple[Stage, ...]
+    former: tuple[Callable[[RunConfig], dict[str, dict]], ...] = ()
     names: tuple[str, ...] = field(init=False)
 
     def __post_init__(self) -> None:

@@ -15,10 +15,10 @@ from pathlib import Path
 import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
-from anchordp3.pipeline.runner import CONFIG_FILE, fingerprints
-from anchordp3.pipeline.store import has_manifest, read_manifest, read_record, read_records, read_summary
-from anchordp3.pipeline.work import DATA_STAGES, STAGE_DIRS, stage_dir
-from anchordp3.schemas.manifest import Fingerprint, ItemRecord, StageManifest
+from anchordp3.pipeline.runner import CONFIG_FILE, fingerprints, translate_layout
+from anchordp3.pipeline.store import has_manifest, read_manifest, read_record, read_records, read_stopped, read_summary
+from anchordp3.pipeline.work import DATA_GRAPH, DATA_STAGES, STAGE_DIRS, stage_dir
+from anchordp3.schemas.manifest import ItemRecord, StageManifest
 from anchordp3.schemas.records import RolloutInfo
 from anchordp3.schemas.run import RunConfig, load_run_config
 from anchordp3.viz.table import text_table
@@ -85,29 +85,26 @@ def run_config(run_dir: Path) -> RunConfig | None:
     return load_run_config(path) if path.is_file() else None
 
 
-def expected_fingerprints(run_dir: Path) -> dict[str, Fingerprint] | None:
-    """The fingerprint each stage should have under the run's config.yaml and this code (None: no config)."""
-    cfg = run_config(run_dir)
-    return None if cfg is None else fingerprints(cfg)
-
-
 def run_status(run_dir: Path) -> list[StageStatus]:
     """One ``StageStatus`` per data stage, in pipeline order."""
     run_dir = check_run_dir(run_dir)
-    want = expected_fingerprints(run_dir)
+    cfg = run_config(run_dir)
+    summaries = {s: read_summary(d) if (d := stage_dir(run_dir, s)).is_dir() else None for s in DATA_STAGES}
+    stored = {s: m.fingerprint for s, m in summaries.items() if m is not None}
+    if cfg is not None:  # outputs made under an earlier config layout read as the current one
+        stored = translate_layout(cfg, DATA_GRAPH, stored)
+    want = None if cfg is None else fingerprints(cfg)
     out = []
-    for s in DATA_STAGES:
-        d = stage_dir(run_dir, s)
-        m = read_summary(d) if d.is_dir() else None
+    for s, m in summaries.items():
         if m is None:
             out.append(StageStatus(stage=s, folder=STAGE_DIRS[s], ran=False))
             continue
-        digest = m.fingerprint.digest()
+        digest = stored[s].digest()
         c = m.counts
         out.append(StageStatus(stage=s, folder=STAGE_DIRS[s], ran=True, done=c.done, failed=c.failed, planned=c.planned,
                                complete=m.complete, seconds=c.seconds, fingerprint=digest,
                                stale=None if want is None else digest != want[s].digest(),
-                               changed=[] if want is None else m.fingerprint.changes(want[s])))
+                               changed=[] if want is None else stored[s].changes(want[s])))
     return out
 
 
@@ -193,7 +190,7 @@ def stage_report(run_dir: Path, stage: str, limit: int = 50) -> str:
     fails = failure_groups(read_records(d, status="failed"))
     if fails:
         lines += ["", "failure reasons:", text_table(["reason", "count", "example", "detail"], [list(g) for g in fails])]
-    discards = discard_groups(read_records(d, status="done")) if stage == "rollout" else []
+    discards = discard_groups(read_stopped(d, RolloutInfo)) if stage == "rollout" else []
     if discards:
         lines += ["", "not kept (the expert failed):", text_table(["reason", "count", "example", "detail"], [list(g) for g in discards])]
     shown = read_records(d, limit=limit)

@@ -5,6 +5,7 @@ reports what each phase cost in all."""
 from __future__ import annotations
 
 import json
+import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -12,21 +13,23 @@ from typing import TypeVar
 
 from anchordp3.stages.files import atomic_write_bytes
 
+log = logging.getLogger(__name__)
+
 T = TypeVar("T")
 
 
 class PhaseClock:
     """``seconds[group][phase]``, loaded from ``path`` when it exists and saved after every phase."""
 
-    def __init__(self, path: Path, groups: tuple[str, ...], say: Callable[[str], None] = print):
-        self.path, self.say = Path(path), say
+    def __init__(self, path: Path, groups: tuple[str, ...]):
+        self.path = Path(path)
         self.seconds: dict[str, dict[str, float]] = json.loads(self.path.read_text()) if self.path.is_file() else {}
         for g in groups:
             self.seconds.setdefault(g, {})
 
     def timed(self, group: str, phase: str, fn: Callable[[], T]) -> T:
         """Run ``fn``; its wall time adds to what earlier invocations spent on ``group``/``phase``."""
-        self.say(f"{group}: {phase}")
+        log.info(f"{group}: {phase}")
         t0 = time.perf_counter()
         result = fn()
         self.seconds.setdefault(group, {})[phase] = self.seconds[group].get(phase, 0.0) + time.perf_counter() - t0

@@ -11,7 +11,6 @@ over invocations), ``results.json`` and ``report.md``.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from pathlib import Path
 
 from anchordp3.pipeline.evaluation import EvalOptions, run_evaluation, summarize, wilson_interval
@@ -26,24 +25,24 @@ GROUP = "recipe"
 PHASES_FILE = "phases.json"
 
 
-def run_recipe(out: Path, cfg: RecipeConfig, say: Callable[[str], None] = print, address: str | None = None,
+def run_recipe(out: Path, cfg: RecipeConfig, address: str | None = None,
                keep_outputs: bool = False) -> dict:
     """Run (or resume) the recipe into ``out``; returns the results written to ``results.json``.
     keep_outputs: keep data stages that only older code made (``RunOptions.keep_outputs``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     run = out / "run"
-    clock = PhaseClock(out / PHASES_FILE, (GROUP,), say)
-    clock.timed(GROUP, "data", lambda: run_pipeline(cfg.run, run, RunOptions(address=address, keep_outputs=keep_outputs), say=say))
-    clock.timed(GROUP, "train", lambda: train_models(run, MODELS, cfg.training, say=say))
+    clock = PhaseClock(out / PHASES_FILE, (GROUP,))
+    clock.timed(GROUP, "data", lambda: run_pipeline(cfg.run, run, RunOptions(address=address, keep_outputs=keep_outputs)))
+    clock.timed(GROUP, "train", lambda: train_models(run, MODELS, cfg.training))
     e = cfg.eval
     base = dict(workers=e.workers, max_decisions=e.max_decisions, through=e.through, address=address)
-    unseen = clock.timed(GROUP, "eval", lambda: run_evaluation(run, EvalOptions(episodes=e.episodes, out=out / "eval", **base), cfg.run, say=say))
+    unseen = clock.timed(GROUP, "eval", lambda: run_evaluation(run, EvalOptions(episodes=e.episodes, out=out / "eval", **base), cfg.run))
     seen: list[dict] = []
     if e.train_episodes:
         seeds = ",".join(str(s) for s in cfg.run.seed_list[:e.train_episodes])
         seen = clock.timed(GROUP, "eval-train", lambda: run_evaluation(
-            run, EvalOptions(seeds=seeds, out=out / "eval-train", strips=0, **base), cfg.run, say=say))
+            run, EvalOptions(seeds=seeds, out=out / "eval-train", strips=0, **base), cfg.run))
     results = recipe_results(out, cfg, unseen, seen, clock.seconds[GROUP])
     atomic_write_bytes(out / "results.json", json.dumps(results, indent=1).encode())
     atomic_write_bytes(out / "report.md", recipe_report(results).encode())

@@ -8,6 +8,10 @@ written as soon as every episode it holds is resolved (through every stage, stop
 the group stage's finishing item (the dataset's index and statistics) comes when every group is
 done. Work in flight is bounded per actor, and only IDs, paths and small typed payloads travel
 between processes.
+
+Messages and progress lines go to ``logging`` (``anchordp3.logs``); what a worker logs while it
+does an item comes back with the item's result and is re-emitted here, so the run's log file
+(``<run>/logs/driver.log``) holds the driver's and every worker's messages.
 """
 
 from __future__ import annotations
@@ -20,30 +24,33 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import ray
 import yaml
 
 import anchordp3
-from anchordp3.pipeline.actors import FAULTS_ENV, StageWorker, one_line
+from anchordp3.logs import replay, to_file
+from anchordp3.pipeline.actors import FAULTS_ENV, ItemResult, StageWorker, one_line
 from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.graph import EpisodeItem, Graph, GroupItem, Stage, StageOutput
 from anchordp3.pipeline.lock import RunLock
-from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_manifest
+from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_summary
 from anchordp3.pipeline.work import DATA_GRAPH
 from anchordp3.schemas.episode import episode_id
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.run import RunConfig, config_hash
 from anchordp3.stages.files import atomic_write_bytes
 
+log = logging.getLogger(__name__)
+
 CONFIG_FILE = "config.yaml"
+LOG_FILE = "logs/driver.log"  # the driver's messages, progress and its workers' messages, appended per invocation
 CALL_SECONDS = 0.05  # work an actor call should carry before items are batched into it
 MAX_BATCH = 256      # items per actor call at most
 
 
 class RunAborted(RuntimeError):
-    """Too many items of a stage failed."""
+    """Too many items of a stage failed, or a stage's workers cannot start."""
 
 
 @dataclass
@@ -70,19 +77,51 @@ def fingerprints(cfg: RunConfig, graph: Graph = DATA_GRAPH) -> dict[str, Fingerp
     return out
 
 
+def translate_layout(cfg: RunConfig, graph: Graph, stored: dict[str, Fingerprint]) -> dict[str, Fingerprint]:
+    """The ``stored`` fingerprints (of the stages that have outputs) as the current config layout
+    reads them: when every stored config hash is the one a former layout (``Graph.former``) gives
+    for ``cfg``, each takes the current layout's config hash and its upstream the translated
+    digest (code hashes stay: a code change is still one). Otherwise ``stored`` unchanged."""
+    for former in graph.former:
+        parts = former(cfg)
+        old = {st.name: config_hash(parts.get(st.name, st.config(cfg))) for st in graph.stages}
+        if not stored or any(fp.config_hash != old[s] for s, fp in stored.items()) or all(
+                fp.config_hash == config_hash(graph[s].config(cfg)) for s, fp in stored.items()):
+            continue
+        out: dict[str, Fingerprint] = {}
+        for st in graph.stages:
+            if st.name not in stored:
+                continue
+            fp, up = stored[st.name], graph.upstream(st.name)
+            out[st.name] = fp.model_copy(update={"config_hash": config_hash(st.config(cfg)),
+                                                 "upstream": {up: out[up].digest()} if up in out else fp.upstream})
+        return out
+    return stored
+
+
+def read_fingerprints(run_dir: Path, graph: Graph = DATA_GRAPH) -> dict[str, Fingerprint]:
+    """The stored fingerprints of the stages with outputs in ``run_dir``, as written."""
+    stored = {}
+    for st in graph.stages:
+        d = Path(run_dir) / st.folder
+        if d.exists() and (m := read_summary(d)) is not None:
+            stored[st.name] = m.fingerprint
+    return stored
+
+
+def stored_fingerprints(cfg: RunConfig, run_dir: Path, graph: Graph = DATA_GRAPH) -> dict[str, Fingerprint]:
+    """The fingerprints of the stages with outputs in ``run_dir``, in the current layout."""
+    return translate_layout(cfg, graph, read_fingerprints(run_dir, graph))
+
+
 def stage_changes(cfg: RunConfig, run_dir: Path, graph: Graph = DATA_GRAPH,
                   fps: dict[str, Fingerprint] | None = None) -> dict[str, list[str]]:
     """Stages whose stored outputs were made with another fingerprint than ``cfg`` (and this code)
     gives, in pipeline order, each with what changed (``Fingerprint.changes``). ``fps``: those
     fingerprints when already computed (``fingerprints`` hashes the stages' code)."""
     fps = fps or fingerprints(cfg, graph)
-    out = {}
-    for st in graph.stages:
-        d = Path(run_dir) / st.folder
-        m = read_manifest(d) if d.exists() else None
-        if m is not None and (changed := m.fingerprint.changes(fps[st.name])):
-            out[st.name] = changed
-    return out
+    stored = stored_fingerprints(cfg, run_dir, graph)
+    return {s: changed for s in graph.names if s in stored and (changed := stored[s].changes(fps[s]))}
 
 
 def adoptable(changes: dict[str, list[str]]) -> list[str]:
@@ -166,8 +205,8 @@ class Runner:
     """One invocation of ``anchordp3 run`` on a run directory (use ``run_pipeline``), generic over
     a stage graph (``graph.Graph``; the data stages by default)."""
 
-    def __init__(self, cfg: RunConfig, run_dir: Path, opts: RunOptions, say: Callable[[str], None], graph: Graph = DATA_GRAPH):
-        self.cfg, self.run_dir, self.opts, self.say, self.graph = cfg, Path(run_dir), opts, say, graph
+    def __init__(self, cfg: RunConfig, run_dir: Path, opts: RunOptions, graph: Graph = DATA_GRAPH):
+        self.cfg, self.run_dir, self.opts, self.graph = cfg, Path(run_dir), opts, graph
         self.names = graph.names
         self.chain = graph.episode_stages
         self.group = graph.group_stage
@@ -185,7 +224,9 @@ class Runner:
 
     # ----------------------------------------------------------------------------- setup
     def open_stores(self) -> dict[str, ManifestStore]:
-        changes = stage_changes(self.cfg, self.run_dir, self.graph, self.fps)
+        written = read_fingerprints(self.run_dir, self.graph)
+        stored = translate_layout(self.cfg, self.graph, written)
+        changes = {s: c for s in self.names if s in stored and (c := stored[s].changes(self.fps[s]))}
         redo: set[str] = set()
         if self.opts.from_stage:
             redo |= set(self.names[self.names.index(self.opts.from_stage):])
@@ -200,13 +241,16 @@ class Runner:
             raise StaleStageError(
                 f"{self.run_dir}: stage(s) {describe_changes(left)} were made with another "
                 f"{'code' if code_only else 'config or code'} than now; refusing to mix old and new outputs: rerun with {hint}")
+        restamp = {s for s in stored if s not in changes and written[s] != stored[s]}  # made under a former layout
         for s in self.names:
             if s in keep:
-                self.say(f"{s}: keeping the outputs other code made ({', '.join(changes[s])}), as --keep-outputs asks")
-        stores = {s: ManifestStore(self._dir(s), s, self.fps[s], reset=s in redo, adopt=s in keep) for s in self.names}
+                log.info(f"{s}: keeping the outputs other code made ({', '.join(changes[s])}), as --keep-outputs asks")
+            if s in restamp:
+                log.info(f"{s}: outputs fingerprinted under an earlier config layout; re-stamped, nothing redone")
+        stores = {s: ManifestStore(self._dir(s), s, self.fps[s], reset=s in redo, adopt=s not in redo and s in keep | restamp,
+                                 payload=self.graph[s].stop_payload) for s in self.names}
         for st in self.chain:
-            self.halted[st.name] = {i for i, r in stores[st.name].records()
-                                    if r.status == "done" and not r.payload(st.record).continues}
+            self.halted[st.name] = stores[st.name].stopped()
         return stores
 
     def check_inputs(self, stores: dict[str, ManifestStore]) -> None:
@@ -253,7 +297,7 @@ class Runner:
 
     # ----------------------------------------------------------------------------- the run
     def run(self) -> dict:
-        with RunLock(self.run_dir):
+        with RunLock(self.run_dir), to_file(self.run_dir / LOG_FILE):
             stores = self.open_stores()
             try:
                 self.check_inputs(stores)
@@ -283,8 +327,9 @@ class Runner:
             return all(stores[s].done(_group_id(k)) for k in range(len(self.plan)))
         prev = self.graph.upstream(s)
         upstream_complete = prev is None or self._complete(stores, prev)
-        n = len(stores[s].status)
-        return upstream_complete and n >= self._planned(stores, s) and (prev is not None or n == len(self.episodes))
+        status = stores[s].status  # may hold episodes a run with more seeds left: count this run's
+        n = sum(1 for ep in self.episodes if episode_id(*ep) in status)
+        return upstream_complete and n >= self._planned(stores, s)
 
     def _loop(self, stores: dict[str, ManifestStore]) -> None:
         enabled = self.enabled
@@ -362,8 +407,9 @@ class Runner:
                 load[s][a] += 1
 
         def settle(s: str, item_id: str, key, attempt: int, result) -> None:
-            """Record one item's outcome (``result``: ``(out, seconds, reason, detail)``) or queue its retry."""
-            out, seconds, reason, detail = result
+            """Record one item's outcome (an ``actors.ItemResult``) or queue its retry."""
+            replay(result.logs, f"{s} {item_id}")
+            out, seconds, reason, detail = result.output, result.seconds, result.reason, result.detail
             if out is None and attempt < self.cfg.execution.max_attempts:
                 queues[s].appendleft(key)
                 return
@@ -407,7 +453,8 @@ class Runner:
                         try:
                             ray.get(ref)
                             triage.up(actor)
-                        except ray.exceptions.RayActorError:
+                        except ray.exceptions.RayActorError as e:
+                            _refuse_unstartable(actor[0], e)
                             ping_due[actor] = time.perf_counter() + 0.5
                         continue
                     s, a, batch = in_flight.pop(ref)
@@ -415,6 +462,7 @@ class Runner:
                     try:
                         results = ray.get(ref)
                     except ray.exceptions.RayActorError as e:  # the actor died: every item of the call is lost with it
+                        _refuse_unstartable(s, e)
                         if (s, a) not in triage.down:  # its first lost call: ping it until it is back
                             ping_due[(s, a)] = time.perf_counter() + 0.5
                         for item_id, key, attempt in batch:
@@ -424,10 +472,10 @@ class Runner:
                                 attempts[(s, item_id)] -= 1
                                 queues[s].appendleft(key)
                                 continue
-                            settle(s, item_id, key, attempt, (None, 0.0, type(e).__name__, one_line(e)))
+                            settle(s, item_id, key, attempt, ItemResult(None, 0.0, type(e).__name__, one_line(e)))
                         continue
                     for (item_id, key, attempt), result in zip(batch, results):
-                        triage.finished((s, a), (s, item_id), ok=result[0] is not None)
+                        triage.finished((s, a), (s, item_id), ok=result.output is not None)
                         settle(s, item_id, key, attempt, result)
                 for store in stores.values():  # durable before any work that builds on them is sent
                     store.flush()
@@ -471,7 +519,7 @@ class Runner:
             total = len(self.plan) if self.group is not None and s == self.group.name else self._planned(stores, s)
             already = len(stores[s].status) - self.stats.done[s] - self.stats.failed[s]
             lines.append(self.stats.line(s, total, already))
-        self.say(" | ".join(lines))
+        log.info(" | ".join(lines))
 
     def _check_failures(self, stores: dict[str, ManifestStore], s: str) -> None:
         c = stores[s].counts
@@ -512,6 +560,12 @@ class Runner:
         store.record(_done_record(st.finish_item, out, time.perf_counter() - t0, 1))
 
 
+def _refuse_unstartable(stage: str, e: Exception) -> None:
+    """A worker whose constructor raised never takes a call: stop the run, naming why."""
+    if getattr(e, "actor_init_failed", False):
+        raise RunAborted(f"stage {stage}: its worker could not start: {one_line(e)}") from None
+
+
 def _group_id(k: int) -> str:
     """Item id of group ``k`` of a group stage: ``shard/00002``."""
     return f"shard/{k:05d}"
@@ -548,8 +602,7 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph =
              log_to_driver=False, object_store_memory=100 * 1024**2, _node_ip_address="127.0.0.1")
 
 
-def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(),
-                 say: Callable[[str], None] = lambda m: print(m, file=sys.stderr), graph: Graph = DATA_GRAPH) -> dict:
+def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(), graph: Graph = DATA_GRAPH) -> dict:
     """Run (or resume) the stages of ``graph`` (the data stages) for ``cfg`` in ``run_dir``;
     returns per-stage counts."""
     unknown = [s for s in (opts.stages or ()) if s not in graph.names]
@@ -560,4 +613,4 @@ def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(),
     from anchordp3.pipeline.inspect import check_task_names
 
     check_task_names(cfg)
-    return Runner(cfg, run_dir, opts, say, graph).run()
+    return Runner(cfg, run_dir, opts, graph).run()

@@ -1,7 +1,11 @@
 """A stage's manifest on disk: one SQLite file, ``records.sqlite``, with its totals and one row per item.
 
 Layout: a ``meta`` table (stage, fingerprint, planned, complete, and the running totals done /
-failed / seconds) and an ``items`` table (item id, status, seconds, the ``ItemRecord`` as JSON).
+failed / seconds) and an ``items`` table (item id, status, seconds, ``stops``: 1 when the item is
+done and its typed payload stops the episode there (``Payload.continues`` false: a rollout whose
+expert failed), and the ``ItemRecord`` as JSON). A writer given its stage's payload model fills
+``stops``, so the stopped items of a million are found by one indexed query, not by parsing every
+record (``read_stopped``, the runner's resume).
 Every write is a transaction committed with ``synchronous=FULL`` in WAL mode: a record is on disk
 once ``record`` (or ``flush`` after ``record(..., durable=False)``) returns, a crash at any instant
 leaves the last committed state, and readers (``anchordp3 status`` while a run goes on) never
@@ -26,6 +30,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord, StageCounts, StageManifest
+from anchordp3.schemas.records import Payload
 
 RECORDS = "records.sqlite"
 MANIFEST = "manifest.json"  # the earlier format (read, and migrated on the first write)
@@ -33,7 +38,9 @@ JOURNAL = "journal.jsonl"   # the earlier format's journal
 STORE_FILES = (RECORDS, MANIFEST, JOURNAL)
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS items (item TEXT PRIMARY KEY, status TEXT NOT NULL, seconds REAL NOT NULL, record TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS items (item TEXT PRIMARY KEY, status TEXT NOT NULL, seconds REAL NOT NULL, record TEXT NOT NULL,
+                                  stops INTEGER NOT NULL DEFAULT 0);
+CREATE INDEX IF NOT EXISTS items_stops ON items (stops) WHERE stops = 1;
 """
 
 
@@ -85,6 +92,27 @@ def read_records(stage_dir: Path, status: str | None = None, slowest: bool = Fal
     sql += f" LIMIT {int(limit)}" if limit > 0 else ""
     with _reader(stage_dir / RECORDS) as db:
         return [_parse(text, stage_dir / RECORDS) for (text,) in db.execute(sql, (status,) if status else ())]
+
+
+def read_stopped(stage_dir: Path, payload: type[Payload]) -> list[ItemRecord]:
+    """The records of items done whose ``payload`` stops the episode (``continues`` false), by item
+    id: one indexed query (a folder of the earlier formats: every record parsed)."""
+    stage_dir = Path(stage_dir)
+    if (stage_dir / RECORDS).is_file():
+        with _reader(stage_dir / RECORDS) as db:
+            if _has_stops(db):
+                rows = db.execute("SELECT record FROM items WHERE stops = 1 ORDER BY item")
+                return [_parse(text, stage_dir / RECORDS) for (text,) in rows]
+    return [r for r in read_records(stage_dir, status="done") if _stops(r, payload)]
+
+
+def _stops(rec: ItemRecord, payload: type[Payload] | None) -> bool:
+    """Whether ``rec`` is done and its payload stops the episode there."""
+    return payload is not None and rec.status == "done" and not rec.payload(payload).continues
+
+
+def _has_stops(db: sqlite3.Connection) -> bool:
+    return any(row[1] == "stops" for row in db.execute("PRAGMA table_info(items)"))
 
 
 def read_record(stage_dir: Path, item: str) -> ItemRecord | None:
@@ -226,10 +254,12 @@ class ManifestStore:
 
     fingerprint: what the outputs about to be written depend on. Opening a stage whose stored
     fingerprint differs raises ``StaleStageError`` unless ``reset`` (then its folder is emptied) or
-    ``adopt`` (the records are kept and the manifest takes ``fingerprint``, durably, at once)."""
+    ``adopt`` (the records are kept and the manifest takes ``fingerprint``, durably, at once).
+    payload: the stage's payload model, when its items can stop an episode (fills ``stops``)."""
 
-    def __init__(self, stage_dir: Path, stage: str, fingerprint: Fingerprint, reset: bool = False, adopt: bool = False):
-        self.dir, self.stage, self.fingerprint = Path(stage_dir), stage, fingerprint
+    def __init__(self, stage_dir: Path, stage: str, fingerprint: Fingerprint, reset: bool = False, adopt: bool = False,
+                 payload: type[Payload] | None = None):
+        self.dir, self.stage, self.fingerprint, self.payload = Path(stage_dir), stage, fingerprint, payload
         existing = read_summary(self.dir) if self.dir.exists() else None
         if existing is not None and existing.fingerprint != fingerprint and not (reset or adopt):
             raise StaleStageError(f"stage {stage}: its outputs were made with a different config or code version")
@@ -242,6 +272,7 @@ class ManifestStore:
         self.db = sqlite3.connect(self.dir / RECORDS, isolation_level=None)
         self.db.execute("PRAGMA journal_mode=WAL")
         self.db.execute("PRAGMA synchronous=FULL")
+        self._add_stops()
         self.db.executescript(_SCHEMA)
         self.status: dict[str, str] = dict(self.db.execute("SELECT item, status FROM items"))
         self.counts = StageCounts()
@@ -274,6 +305,11 @@ class ManifestStore:
         row = self.db.execute("SELECT record FROM items WHERE item = ?", (item,)).fetchone()
         return None if row is None else _parse(row[0], self.dir / RECORDS)
 
+    def stopped(self) -> set[str]:
+        """Items done whose payload stops the episode there (durable ones: flushes first)."""
+        self.flush()
+        return {item for (item,) in self.db.execute("SELECT item FROM items WHERE stops = 1")}
+
     def records(self) -> Iterator[tuple[str, ItemRecord]]:
         """Every ``(item, record)``, sorted by item id."""
         self.flush()
@@ -303,9 +339,9 @@ class ManifestStore:
             self._commit()
 
     def _commit(self) -> None:
-        rows = [(r.item, r.status, r.seconds, r.model_dump_json()) for r in self._pending.values()]
+        rows = [(r.item, r.status, r.seconds, r.model_dump_json(), int(_stops(r, self.payload))) for r in self._pending.values()]
         with _transaction(self.db):
-            self.db.executemany("INSERT OR REPLACE INTO items VALUES (?, ?, ?, ?)", rows)
+            self.db.executemany("INSERT OR REPLACE INTO items VALUES (?, ?, ?, ?, ?)", rows)
             self._put_meta(self._meta())
         self._pending.clear()
 
@@ -351,6 +387,17 @@ class ManifestStore:
     def _put_meta(self, meta: dict[str, str]) -> None:
         self.db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", list(meta.items()))
 
+    def _add_stops(self) -> None:
+        """A file written before the ``stops`` column gets it, filled from the records (once)."""
+        if not self.db.execute("SELECT 1 FROM sqlite_master WHERE name = 'items'").fetchone() or _has_stops(self.db):
+            return
+        with _transaction(self.db):
+            self.db.execute("ALTER TABLE items ADD COLUMN stops INTEGER NOT NULL DEFAULT 0")
+            if self.payload is not None:
+                rows = self.db.execute("SELECT item, record FROM items WHERE status = 'done'").fetchall()
+                stopped = [(item,) for item, text in rows if _stops(_parse(text, self.dir / RECORDS), self.payload)]
+                self.db.executemany("UPDATE items SET stops = 1 WHERE item = ?", stopped)
+
     def _migrate(self) -> None:
         """Move a folder of the earlier format into ``records.sqlite`` (built under a temporary name
         and renamed, so a crash leaves either format whole), then drop the old files."""
@@ -361,8 +408,8 @@ class ManifestStore:
         try:
             db.executescript(_SCHEMA)
             with _transaction(db):
-                db.executemany("INSERT INTO items VALUES (?, ?, ?, ?)",
-                               [(r.item, r.status, r.seconds, r.model_dump_json()) for r in old.items.values()])
+                db.executemany("INSERT INTO items VALUES (?, ?, ?, ?, ?)",
+                               [(r.item, r.status, r.seconds, r.model_dump_json(), int(_stops(r, self.payload))) for r in old.items.values()])
                 db.executemany("INSERT INTO meta VALUES (?, ?)", list(_meta_rows(old, 0).items()))
         finally:
             db.close()

@@ -18,8 +18,9 @@ dataset, so a new dataset does not invalidate it. One process per run directory 
 
 from __future__ import annotations
 
+import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,7 @@ import yaml
 import anchordp3
 from anchordp3.dataset.files import file_sha256
 from anchordp3.dataset.reader import ShardedDataset, open_dataset
+from anchordp3.logs import to_file
 from anchordp3.models.device import pick_device
 from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.lock import RunLock
@@ -44,12 +46,14 @@ from anchordp3.schemas.training import TrainingConfig, training_preset
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.training_loop import MODEL_FILE, TrainResult, format_metrics, format_seconds
 
+log = logging.getLogger(__name__)
+
 MODELS: tuple[str, ...] = ("segmenter", "classifier", "policy")
 MODELS_DIR = "models"
 CONFIG_FILE = "config.yaml"
 TRAINING_FILE = "training.yaml"
+LOG_FILE = "logs/train.log"  # the trainings' messages and progress lines, appended per invocation
 
-Say = Callable[[str], None]
 
 
 def model_dir(run_dir: Path, name: str) -> Path:
@@ -140,8 +144,7 @@ class Trained:
     result: TrainResult | None = None
 
 
-def train_models(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: bool = False,
-                 say: Say = print, stop_at: dict[str, int] | None = None) -> list[Trained]:
+def train_models(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: bool = False, stop_at: dict[str, int] | None = None) -> list[Trained]:
     """Train models ``names`` (in ``MODELS`` order) of the run at ``run_dir``; see the module doc.
 
     force: retrain a model whose fingerprint changed (its folder is emptied first); a model that is
@@ -160,14 +163,14 @@ def train_models(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force
         torch.set_num_threads(cfg.loop.cpu_threads)
     out: list[Trained] = []
     try:
-        with RunLock(run_dir):
+        with RunLock(run_dir), to_file(run_dir / LOG_FILE):
             data = _open_run_dataset(run_dir) if any(n != "classifier" for n in names) else None
             if data is not None:
                 missing = sorted(set(data.tasks) - set(run_cfg.tasks))
                 if missing:
                     raise ValueError(f"{stage_dir(run_dir, 'write')}: dataset tasks {missing} are not in the run config's tasks")
             for name in (n for n in MODELS if n in names):
-                out.append(_train_one(run_dir, name, cfg, data, device, force, say, (stop_at or {}).get(name)))
+                out.append(_train_one(run_dir, name, cfg, data, device, force, (stop_at or {}).get(name)))
     finally:
         torch.set_num_threads(threads)
     return out
@@ -199,7 +202,7 @@ def _what_changed(old: Fingerprint, new: Fingerprint) -> str:
 
 
 def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDataset | None, device: torch.device,
-               force: bool, say: Say, stop_at: int | None) -> Trained:
+               force: bool, stop_at: int | None) -> Trained:
     d = model_dir(run_dir, name)
     upstream: dict[str, str] = {}
     channel = None
@@ -216,12 +219,12 @@ def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDatas
         if not force:
             raise ValueError(f"{d}: trained with a different {changed}; pass --force to retrain it, "
                              "or the settings it was trained with to keep it") from None
-        say(f"{name}: {changed} changed; retraining from scratch (--force)")
+        log.info(f"{name}: {changed} changed; retraining from scratch (--force)")
         store = ManifestStore(d, stage_name(name), fp, reset=True)
     try:
         if store.done(name):
             rec = store.items[name]
-            say(f"{name}: up to date ({format_metrics(rec.payload(ModelInfo).metrics)})")
+            log.info(f"{name}: up to date ({format_metrics(rec.payload(ModelInfo).metrics)})")
             return Trained(name, "up-to-date", rec)
         store.finish(1, False)  # the fingerprint is on disk before any checkpoint is
         atomic_write_bytes(d / TRAINING_FILE, yaml.safe_dump(model_config_part(cfg, name), sort_keys=False).encode())
@@ -230,15 +233,15 @@ def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDatas
         if name == "segmenter":
             from anchordp3.stages.train_segmenter import train_segmenter
 
-            result = train_segmenter(data, cfg, d, device, digest, say, stop_at)
+            result = train_segmenter(data, cfg, d, device, digest, stop_at)
         elif name == "classifier":
             from anchordp3.stages.train_classifier import train_classifier
 
-            result = train_classifier(cfg, d, device, digest, say, stop_at)
+            result = train_classifier(cfg, d, device, digest, stop_at)
         else:
             from anchordp3.stages.train_policy import train_policy
 
-            result = train_policy(data, cfg, d, device, channel, digest, say, stop_at)
+            result = train_policy(data, cfg, d, device, channel, digest, stop_at)
         if not result.finished:
             return Trained(name, "stopped", None, result)
         info = ModelInfo(metrics=result.metrics, steps=result.step, train_seconds=round(result.seconds, 2), device=str(device),
@@ -248,7 +251,7 @@ def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDatas
                          seconds=time.perf_counter() - t0, info=info.model_dump(mode="json", exclude_none=True))
         store.record(rec)
         store.finish(1, True)
-        say(f"{name}: done in {format_seconds(result.seconds)}: {format_metrics(result.metrics)} -> {result.model_path}")
+        log.info(f"{name}: done in {format_seconds(result.seconds)}: {format_metrics(result.metrics)} -> {result.model_path}")
         return Trained(name, "trained", rec, result)
     finally:
         store.close()

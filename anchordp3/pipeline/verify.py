@@ -9,8 +9,8 @@ items: outputs are deterministic, so the healed run holds the same bytes as befo
 
 from __future__ import annotations
 
+import logging
 import shutil
-from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
 
@@ -20,10 +20,12 @@ from anchordp3.dataset.files import file_sha256, tree_checksum
 from anchordp3.pipeline.inspect import check_run_dir, run_config, run_status
 from anchordp3.pipeline.lock import RunLock
 from anchordp3.pipeline.runner import CONFIG_FILE, RunOptions, run_pipeline
-from anchordp3.pipeline.store import ManifestStore, read_manifest
-from anchordp3.pipeline.work import DATA_STAGES, INDEX_ITEM, stage_dir
+from anchordp3.pipeline.store import ManifestStore, read_manifest, read_summary
+from anchordp3.pipeline.work import DATA_GRAPH, DATA_STAGES, INDEX_ITEM, stage_dir
 from anchordp3.schemas.dataset import DatasetInfo
 from anchordp3.schemas.manifest import ItemRecord
+
+log = logging.getLogger(__name__)
 
 
 class Problem(BaseModel):
@@ -137,8 +139,8 @@ def forget_broken(run_dir: Path, problems: list[Problem]) -> dict[str, list[str]
     with RunLock(run_dir):
         for s, items in redo.items():
             d = stage_dir(run_dir, s)
-            m = read_manifest(d)
-            store = ManifestStore(d, s, m.fingerprint)
+            m = read_summary(d)
+            store = ManifestStore(d, s, m.fingerprint, payload=DATA_GRAPH[s].stop_payload)
             try:
                 store.forget(items)
             finally:
@@ -152,8 +154,7 @@ def forget_broken(run_dir: Path, problems: list[Problem]) -> dict[str, list[str]
     return redo
 
 
-def repair_run(run_dir: Path, address: str | None = None,
-               say: Callable[[str], None] = lambda m: None) -> tuple[RunVerifyReport, RunVerifyReport]:
+def repair_run(run_dir: Path, address: str | None = None) -> tuple[RunVerifyReport, RunVerifyReport]:
     """Verify ``run_dir``; when something is broken, forget those items and resume the run so
     exactly they are redone; verify again. Returns the reports before and after."""
     before = verify_run(run_dir)
@@ -167,6 +168,6 @@ def repair_run(run_dir: Path, address: str | None = None,
         raise ValueError(f"{run_dir}: stage(s) {', '.join(stale)} were made with another config or code version than "
                          f"its {CONFIG_FILE}; repairing would mix outputs (rerun with --force instead)")
     redo = forget_broken(run_dir, before.problems)
-    say("redoing " + "; ".join(f"{s}: {', '.join(items)}" for s, items in redo.items()))
-    run_pipeline(cfg, Path(run_dir), RunOptions(address=address), say=say)
+    log.info("redoing " + "; ".join(f"{s}: {', '.join(items)}" for s, items in redo.items()))
+    run_pipeline(cfg, Path(run_dir), RunOptions(address=address))
     return before, verify_run(run_dir)

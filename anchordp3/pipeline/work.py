@@ -102,7 +102,7 @@ DATA_GRAPH = Graph((
     Stage("features", "features", _features, FeaturesInfo, run_features.__module__, _part("features")),
     Stage("write", "dataset", _write, ShardInfo, write_shard.__module__, _part("write"), needs=(RolloutInfo,),
           group=_shards, finish=_index, finish_item=INDEX_ITEM),
-))
+), former=(lambda cfg: {s: cfg.stage_config(s, layout=1) for s in ("rollout", "write")},))
 DATA_STAGES: tuple[str, ...] = DATA_GRAPH.names
 STAGE_DIRS = {s.name: s.folder for s in DATA_GRAPH.stages}
 

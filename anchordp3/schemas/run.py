@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -110,17 +109,26 @@ class RunConfig(BaseModel):
         """The simulated world of every episode."""
         return WorldConfig(randomization=preset_config(self.preset), cameras=self.cameras, sim=self.sim)
 
-    def stage_config(self, stage: str) -> dict:
+    def stage_config(self, stage: str, layout: int = 2) -> dict:
         """What a stage's outputs depend on (its own settings and what it shares with the world);
-        the fingerprint hashes this, so execution settings never invalidate outputs."""
+        the fingerprint hashes this, so execution settings never invalidate outputs.
+
+        An episode's outputs depend on its task, seed and world, not on the run's other episodes:
+        the episode set is in the write stage's part only (the shard plan and the split follow
+        it), so adding seeds redoes the shards and nothing else. ``layout=1``: the parts before
+        that change (the episode set in the rollout's part), to recognise outputs made then."""
         world = {"preset": self.preset, "sim": self.sim.model_dump(mode="json")}
+        episodes = {"tasks": self.tasks, "seeds": str(self.seed_list)}
+        if layout == 1:
+            return {"rollout": {**world, **episodes}, "write": {"write": self.write.model_dump(mode="json")}}.get(stage) \
+                or self.stage_config(stage)
         parts = {
-            "rollout": {**world, "tasks": self.tasks, "seeds": str(self.seed_list)},
+            "rollout": world,
             "anchors": {"anchors": self.anchors.model_dump(mode="json")},
             "render": {**world, "cameras": self.cameras.model_dump(mode="json"), "render": self.render.model_dump(mode="json"),
                        "dagger": self.anchors.dagger.model_dump(mode="json")},
             "features": {"features": self.features.model_dump(mode="json")},
-            "write": {"write": self.write.model_dump(mode="json")},
+            "write": {"write": self.write.model_dump(mode="json"), "episodes": episodes},
         }
         return parts[stage]
 

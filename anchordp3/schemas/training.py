@@ -245,11 +245,21 @@ class PolicyConfig(_Config):
                     "clustered into this many objects (k-means, largest first), each summarised by its centroid, its "
                     "offset from each end effector, its spread and size (models.objects); 0: none, as in the report.")
     object_encoder_dim: int = Field(default=64, ge=1, description="Width of the object tokens' feature in the FiLM condition (with object_tokens > 0).")
+    anchored_offsets: bool = Field(
+        default=False,
+        description="Anchor the predicted end-effector positions to the objects: the denoiser's clean sample gets, in "
+                    "each arm's end-effector xyz of each horizon slot, a learned mix (gates from the condition, zero at "
+                    "start) of the object tokens' offsets from that arm's end effector, so 'pre-grasp = object "
+                    "centroid + offset' is one gate away (needs object_tokens > 0, relative targets and 'sample' "
+                    "prediction); off: the U-Net alone, as in the report.")
 
     @model_validator(mode="after")
     def _dims(self) -> PolicyConfig:
         if self.state_encoder.in_dim != self.action_dim:
             raise ValueError(f"state_encoder.in_dim: {self.state_encoder.in_dim} != action_dim {self.action_dim}")
+        if self.anchored_offsets and (not self.object_tokens or self.target != "relative"
+                                      or self.scheduler.prediction_type != "sample"):
+            raise ValueError("anchored_offsets: needs object_tokens > 0, target 'relative' and scheduler.prediction_type 'sample'")
         return self
 
     @property

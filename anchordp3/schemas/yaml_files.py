@@ -17,7 +17,9 @@ def read_yaml_mapping(path: Path, what: str = "config") -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such {what} file")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a text file (byte {e.start} is not UTF-8)") from None
     except yaml.YAMLError as e:
         raise ValueError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if data is None:

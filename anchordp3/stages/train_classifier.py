@@ -11,6 +11,7 @@ checkpoint) and writes ``model.pt``; ``load_classifier(path)`` gives back a read
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,6 @@ from anchordp3.models.optim import make_lr_schedule, make_optimizer
 from anchordp3.schemas.tasks import TASK_NAMES
 from anchordp3.schemas.training import ClassifierConfig, TrainingConfig
 from anchordp3.stages.training_loop import (
-    Say,
     TrainingJob,
     TrainResult,
     batches_per_epoch,
@@ -33,6 +33,8 @@ from anchordp3.stages.training_loop import (
     optimizer_step,
     run_training,
 )
+
+log = logging.getLogger(__name__)
 
 KIND = "classifier"
 EVAL_BATCH = 256
@@ -114,13 +116,12 @@ class ClassifierJob(TrainingJob):
         }
 
 
-def train_classifier(config: TrainingConfig, out_dir: Path, device: torch.device, fingerprint: str = "",
-                     say: Say = print, stop_at: int | None = None) -> TrainResult:
+def train_classifier(config: TrainingConfig, out_dir: Path, device: torch.device, fingerprint: str = "", stop_at: int | None = None) -> TrainResult:
     """Fine-tune (or resume) the classifier into ``out_dir`` (see ``run_training``)."""
     job = ClassifierJob(config, device)
-    say(f"classifier: {len(job.train_texts)} train / {len(job.val_texts)} held-out instructions "
+    log.info(f"classifier: {len(job.train_texts)} train / {len(job.val_texts)} held-out instructions "
         f"(families {', '.join(job.val_families)}), {job.total_steps} steps of {config.classifier.optim.batch_size} on {device}")
-    return run_training(job, out_dir, config.loop, fingerprint, say, stop_at)
+    return run_training(job, out_dir, config.loop, fingerprint, stop_at)
 
 
 def load_classifier(path: Path, device: torch.device | str = "cpu") -> InstructionClassifier:

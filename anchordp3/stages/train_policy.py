@@ -16,6 +16,7 @@ holds a checkpoint) and writes ``model.pt``; ``load_policy(path)`` gives back a 
 from __future__ import annotations
 
 import io
+import logging
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +40,6 @@ from anchordp3.schemas.training import PolicyConfig, TrainingConfig, model_task_
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.train_segmenter import load_segmenter, stats_limits
 from anchordp3.stages.training_loop import (
-    Say,
     TrainingJob,
     TrainResult,
     batches_per_epoch,
@@ -50,6 +50,8 @@ from anchordp3.stages.training_loop import (
     to_device,
     train_batches,
 )
+
+log = logging.getLogger(__name__)
 
 KIND = "policy"
 POLICY_KEYS = ("points", "labels", "state", "anchors")
@@ -66,8 +68,7 @@ class CriticalChannel:
     checksum: str | None = None
 
 
-def critical_probabilities(data: ShardedDataset, segmenter_path: Path, device: torch.device, batch_size: int = 32,
-                           say: Say = print) -> np.ndarray:
+def critical_probabilities(data: ShardedDataset, segmenter_path: Path, device: torch.device, batch_size: int = 32) -> np.ndarray:
     """The segmenter's critical probability of every point of every sample: ``(samples, N) float16``
     indexed by global sample index (both splits)."""
     model = load_segmenter(segmenter_path, device)
@@ -76,7 +77,7 @@ def critical_probabilities(data: ShardedDataset, segmenter_path: Path, device: t
     for batch in eval_batches(ds, batch_size):
         probs = model.probabilities(batch["points"].to(device))
         out[batch["index"].numpy()] = probs.cpu().numpy().astype(np.float16)
-    say(f"policy: segmenter probabilities of {len(ds)} samples computed (mean {float(out.mean()):.3f})")
+    log.info(f"policy: segmenter probabilities of {len(ds)} samples computed (mean {float(out.mean()):.3f})")
     return out
 
 
@@ -275,8 +276,7 @@ class PolicyJob(TrainingJob):
 
 
 def train_policy(data: ShardedDataset, config: TrainingConfig, out_dir: Path, device: torch.device,
-                 channel: CriticalChannel = CriticalChannel("ground_truth"), fingerprint: str = "",
-                 say: Say = print, stop_at: int | None = None) -> TrainResult:
+                 channel: CriticalChannel = CriticalChannel("ground_truth"), fingerprint: str = "", stop_at: int | None = None) -> TrainResult:
     """Train (or resume) the policy on ``data`` into ``out_dir`` (see ``run_training``), the 12th
     point channel from ``channel``."""
     out_dir = Path(out_dir)
@@ -288,15 +288,15 @@ def train_policy(data: ShardedDataset, config: TrainingConfig, out_dir: Path, de
         if cache.is_file():
             probabilities = np.load(cache)
         else:
-            probabilities = critical_probabilities(data, channel.path, device, say=say)
+            probabilities = critical_probabilities(data, channel.path, device)
             buf = io.BytesIO()
             np.save(buf, probabilities)
             atomic_write_bytes(cache, buf.getvalue())
     job = PolicyJob(data, config, device, channel, probabilities)
-    say(f"policy: {len(job.train_ds)} train / {len(job.val_ds)} validation samples, tasks {data.tasks} -> encoders "
+    log.info(f"policy: {len(job.train_ds)} train / {len(job.val_ds)} validation samples, tasks {data.tasks} -> encoders "
         f"{job.task_lut.tolist()}, critical channel from {channel.source}, {job.total_steps} steps of "
         f"{config.policy.optim.batch_size} on {device}")
-    return run_training(job, out_dir, config.loop, fingerprint, say, stop_at)
+    return run_training(job, out_dir, config.loop, fingerprint, stop_at)
 
 
 def load_policy(path: Path, device: torch.device | str = "cpu", ema: bool = True) -> AnchorDiffusionPolicy:

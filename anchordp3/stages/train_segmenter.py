@@ -10,6 +10,7 @@ checkpoint) and writes ``model.pt``; ``load_segmenter(path)`` gives back a ready
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,6 @@ from anchordp3.models.optim import make_lr_schedule, make_optimizer
 from anchordp3.models.segmenter import PointNet2Segmenter, SegmentationCounts, segmentation_loss
 from anchordp3.schemas.training import SegmenterConfig, TrainingConfig
 from anchordp3.stages.training_loop import (
-    Say,
     TrainingJob,
     TrainResult,
     batches_per_epoch,
@@ -34,6 +34,8 @@ from anchordp3.stages.training_loop import (
     to_device,
     train_batches,
 )
+
+log = logging.getLogger(__name__)
 
 KIND = "segmenter"
 SEGMENTER_KEYS = ("points", "labels")
@@ -116,12 +118,12 @@ class SegmenterJob(TrainingJob):
 
 
 def train_segmenter(data: ShardedDataset, config: TrainingConfig, out_dir: Path, device: torch.device,
-                    fingerprint: str = "", say: Say = print, stop_at: int | None = None) -> TrainResult:
+                    fingerprint: str = "", stop_at: int | None = None) -> TrainResult:
     """Train (or resume) the segmenter on ``data`` into ``out_dir`` (see ``run_training``)."""
     job = SegmenterJob(data, config, device)
-    say(f"segmenter: {len(job.train_ds)} train / {len(job.val_ds)} validation samples, {job.total_steps} steps "
+    log.info(f"segmenter: {len(job.train_ds)} train / {len(job.val_ds)} validation samples, {job.total_steps} steps "
         f"of {config.segmenter.optim.batch_size} on {device}")
-    return run_training(job, out_dir, config.loop, fingerprint, say, stop_at)
+    return run_training(job, out_dir, config.loop, fingerprint, stop_at)
 
 
 def load_segmenter(path: Path, device: torch.device | str = "cpu") -> PointNet2Segmenter:

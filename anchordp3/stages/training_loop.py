@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import logging
 import math
 import signal
 import threading
@@ -41,6 +42,8 @@ from anchordp3.dataset.torch_data import SplitDataset, collate_samples, make_loa
 from anchordp3.schemas.training import LoopConfig
 from anchordp3.stages.files import atomic_write_bytes
 
+log = logging.getLogger(__name__)
+
 CHECKPOINT_DIR = "checkpoints"
 LAST_CHECKPOINT = "last.pt"
 MODEL_FILE = "model.pt"
@@ -49,7 +52,6 @@ TENSORBOARD_DIR = "tensorboard"
 LOSS_PLOT = "loss.png"
 METRICS_COLUMNS = ("step", "split", "metric", "value", "elapsed_s")
 
-Say = Callable[[str], None]
 
 
 # ------------------------------------------------------------------------------------ checkpoints
@@ -319,8 +321,8 @@ class Progress:
     """Progress lines ``name: step k/N (p%) | loss L | r steps/s | ETA t`` at most every
     ``interval_s`` seconds (and whenever ``force``); the rate counts this call's steps only."""
 
-    def __init__(self, name: str, total: int, start: int, interval_s: float, say: Say) -> None:
-        self.name, self.total, self.start, self.interval_s, self.say = name, total, start, interval_s, say
+    def __init__(self, name: str, total: int, start: int, interval_s: float) -> None:
+        self.name, self.total, self.start, self.interval_s = name, total, start, interval_s
         self.t0 = self.last = time.perf_counter()
 
     def update(self, step: int, loss: float, force: bool = False, extra: str = "") -> None:
@@ -332,7 +334,7 @@ class Progress:
         rate = done / (now - self.t0) if now > self.t0 else 0.0
         eta = format_seconds((self.total - step) / rate) if rate > 0 else "?"
         pct = 100.0 * step / max(self.total, 1)
-        self.say(f"{self.name}: step {step}/{self.total} ({pct:.0f}%) | loss {loss:.4g} | {rate:.2f} steps/s | ETA {eta}"
+        log.info(f"{self.name}: step {step}/{self.total} ({pct:.0f}%) | loss {loss:.4g} | {rate:.2f} steps/s | ETA {eta}"
                  + (f" | {extra}" if extra else ""))
 
 
@@ -380,7 +382,7 @@ def format_metrics(metrics: Mapping[str, float]) -> str:
 
 
 # ------------------------------------------------------------------------------------------ driver
-def run_training(job: TrainingJob, out_dir: Path, loop: LoopConfig, fingerprint: str, say: Say = print,
+def run_training(job: TrainingJob, out_dir: Path, loop: LoopConfig, fingerprint: str,
                  stop_at: int | None = None) -> TrainResult:
     """Train ``job`` to ``job.total_steps`` in ``out_dir``, resuming from ``checkpoints/last.pt``
     when it exists (and was written under the same ``fingerprint``).
@@ -402,11 +404,11 @@ def run_training(job: TrainingJob, out_dir: Path, loop: LoopConfig, fingerprint:
         job.load_state_dict(state["job"])
         set_rng_state(state["rng"])
         start, elapsed = int(state["step"]), float(state["elapsed_s"])
-        say(f"{job.name}: resuming at step {start}/{total} from {ckpt_path}")
-    log = MetricsLog(out_dir, start)
+        log.info(f"{job.name}: resuming at step {start}/{total} from {ckpt_path}")
+    metrics_log = MetricsLog(out_dir, start)
     eval_every = loop.eval_every or job.steps_per_epoch
     ckpt_every = loop.checkpoint_every or job.steps_per_epoch
-    progress = Progress(job.name, total, start, loop.log_interval_s, say)
+    progress = Progress(job.name, total, start, loop.log_interval_s)
     step, loss, t_mark = start, float("nan"), time.perf_counter()
 
     def clock() -> float:
@@ -418,7 +420,7 @@ def run_training(job: TrainingJob, out_dir: Path, loop: LoopConfig, fingerprint:
     def checkpoint() -> None:
         save_checkpoint(ckpt_path, {"fingerprint": fingerprint, "name": job.name, "step": step, "total_steps": total,
                                     "elapsed_s": clock(), "job": job.state_dict(), "rng": rng_state()})
-        log.flush()
+        metrics_log.flush()
 
     try:
         batches = job.batches(start)
@@ -431,32 +433,32 @@ def run_training(job: TrainingJob, out_dir: Path, loop: LoopConfig, fingerprint:
                 loss = metrics["loss"]
                 if not math.isfinite(loss):
                     raise RuntimeError(f"{job.name}: loss is {loss} at step {step}; lower the learning rate or check the data")
-                log.log(step, "train", metrics, clock())
+                metrics_log.log(step, "train", metrics, clock())
                 progress.update(step, loss)
                 if step % eval_every == 0 and step < total:
                     val = job.evaluate()
-                    log.log(step, "val", val, clock())
+                    metrics_log.log(step, "val", val, clock())
                     if val:
                         progress.update(step, loss, force=True, extra="val " + format_metrics(val))
                 if step % ckpt_every == 0 and step < total:
                     checkpoint()
     except _StopRequested:
         checkpoint()
-        log.close()
-        say(f"{job.name}: interrupted at step {step}/{total}; checkpoint saved, run again to resume")
+        metrics_log.close()
+        log.info(f"{job.name}: interrupted at step {step}/{total}; checkpoint saved, run again to resume")
         raise KeyboardInterrupt from None
     except BaseException:
-        log.close()
+        metrics_log.close()
         raise
     if step < total:
         checkpoint()
-        log.close()
-        say(f"{job.name}: stopped at step {step}/{total}; checkpoint saved")
+        metrics_log.close()
+        log.info(f"{job.name}: stopped at step {step}/{total}; checkpoint saved")
         return TrainResult(job.name, False, step, total, start, clock())
     final = job.evaluate()
     seconds = clock()
-    log.log(step, "val", final, seconds)
-    log.close()
+    metrics_log.log(step, "val", final, seconds)
+    metrics_log.close()
     progress.update(step, loss, force=True, extra="val " + format_metrics(final) if final else "")
     model_path = out_dir / MODEL_FILE
     checksum = save_checkpoint(model_path, {**job.export(), "step": step, "metrics": final, "fingerprint": fingerprint})

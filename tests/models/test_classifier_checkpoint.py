@@ -12,7 +12,7 @@ from anchordp3.stages.train_classifier import load_classifier, train_classifier
 def test_a_classifier_tuning_its_top_layer_ships_only_that_layer_and_loads_back_equal(tmp_path):
     cfg = TrainingConfig.model_validate({"device": "cpu", "classifier": {
         "instructions": {"count": 64}, "tune_layers": 1, "optim": {"steps": 2, "batch_size": 8, "warmup_steps": 1}}})
-    result = train_classifier(cfg, tmp_path, torch.device("cpu"), say=lambda m: None)
+    result = train_classifier(cfg, tmp_path, torch.device("cpu"))
     ckpt = torch.load(result.model_path, weights_only=False)
     keys = list(ckpt["state_dict"])
     assert ckpt["partial_state_dict"] and "head.weight" in keys

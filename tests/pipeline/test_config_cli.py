@@ -75,6 +75,7 @@ BAD = [
     ("tasks: [place_mouse\n  b: :", "not valid YAML"),
     ("- just\n- a list\n", "expected a mapping"),
     (None, "no such config file"),
+    (bytes(range(128, 256)) * 4, "not a text file"),  # random bytes, not UTF-8
 ]
 
 
@@ -82,13 +83,15 @@ BAD = [
 @pytest.mark.parametrize("command", ["validate", "show", "run"])
 def test_bad_config_is_one_line_naming_the_field_exit_2_nothing_written(tmp_path, text, named, command):
     cfg = tmp_path / "bad.yaml"
-    if text is not None:
+    if isinstance(text, bytes):
+        cfg.write_bytes(text)
+    elif text is not None:
         cfg.write_text(text)
     run_dir = tmp_path / "run"
     args = ["run", str(cfg), "--run-dir", str(run_dir)] if command == "run" else ["config", command, str(cfg)]
     line = one_error_line(cli.invoke(app, args))
     assert named in line
-    if text is None or "YAML" in named or "mapping" in named:
+    if text is None or "YAML" in named or "mapping" in named or "text file" in named:
         assert str(cfg) in line  # file-level problems name the file
     assert not run_dir.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == (["bad.yaml"] if text is not None else [])

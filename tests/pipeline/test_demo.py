@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from anchordp3.logs import Capture
 from anchordp3.pipeline.demo import PRETRAINED_EVAL_DIR, DemoOptions, demo_config, run_demo, shipped_models_present
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.training import TrainingConfig
@@ -15,13 +16,13 @@ def test_the_embedded_demo_covers_all_eight_tasks():
 
 
 def test_demo_runs_data_training_and_evaluation_and_prints_the_success_table(ray_session, tmp_path):
-    lines: list[str] = []
     cfg = RunConfig.model_validate(tiny_data("tiny-demo", ["place_bell"], "0-1"))
     training = TrainingConfig.model_validate(tiny_training(3, 3, 3, loop={"log_interval_s": 30.0, "cpu_threads": 1}, device="cpu"))
     opts = DemoOptions(max_decisions=2, workers=1, training=training, pretrained_episodes=1)
-    report = run_demo(tmp_path, cfg, say=lines.append, opts=opts)
+    with Capture() as cap:
+        report = run_demo(tmp_path, cfg, opts=opts)
     assert report == tmp_path / "eval" / "report.md" and report.is_file()
-    out = "\n".join(lines)
+    out = "\n".join(r.message for r in cap.records)
     assert (tmp_path / "frame.png").is_file() and (tmp_path / "models" / "policy" / "model.pt").is_file()
     rows = out.splitlines()
     headers = [i for i, row in enumerate(rows) if "95% CI" in row]  # the demo's success table, then the shipped policy's

@@ -10,8 +10,10 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
+from anchordp3.logs import Capture
 from anchordp3.pipeline.evaluation import (
     EVAL_DIR,
+    LOG_FILE,
     EvalOptions,
     eval_seeds,
     run_evaluation,
@@ -26,7 +28,6 @@ from tiny_models import tiny_data, tiny_training
 
 DATA = tiny_data("tiny-eval", ["place_mouse"], "0-1")
 TRAIN = tiny_training(3, 3, 3, loop={"log_interval_s": 5.0}, device="cpu")
-QUIET = lambda m: None
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +36,8 @@ def trained_run(ray_session, tmp_path_factory) -> Path:
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        run_pipeline(RunConfig.model_validate(DATA), run, RunOptions(progress_interval=60), say=QUIET)
-        train_models(run, MODELS, TrainingConfig.model_validate(TRAIN), say=QUIET)
+        run_pipeline(RunConfig.model_validate(DATA), run, RunOptions(progress_interval=60))
+        train_models(run, MODELS, TrainingConfig.model_validate(TRAIN))
     finally:
         torch.set_num_threads(before)
     return run
@@ -57,9 +58,8 @@ def test_eval_seeds_disjoint_from_training():
 
 
 def test_evaluation_writes_records_and_reports(trained_run):
-    lines: list[str] = []
     opts = EvalOptions(episodes=2, workers=2, max_decisions=2)
-    records = run_evaluation(trained_run, opts, say=lines.append)
+    records = run_evaluation(trained_run, opts)
     out = trained_run / EVAL_DIR
     assert [(r["task"], r["seed"]) for r in records] == [("place_mouse", s) for s in eval_seeds(RunConfig.model_validate(DATA), 2)]
     for r in records:
@@ -81,9 +81,10 @@ def test_evaluation_writes_records_and_reports(trained_run):
             strip = out / "strips" / "place_mouse" / f"{r['seed']:06d}.png"
             assert strip.read_bytes()[:4] == b"\x89PNG" and f"strips/place_mouse/{r['seed']:06d}.png" in report
     # a second call finds every episode done and redoes none
-    again: list[str] = []
-    assert run_evaluation(trained_run, opts, say=again.append) == records
-    assert any("2 already done" in line for line in again)
+    with Capture() as cap:
+        assert run_evaluation(trained_run, opts) == records
+    assert any("2 already done" in r.message for r in cap.records)
+    assert "2 already done" in (out / LOG_FILE).read_text()  # and in the evaluation's log file
 
 
 def test_eval_cli(trained_run, tmp_path):
@@ -91,7 +92,7 @@ def test_eval_cli(trained_run, tmp_path):
 
     from anchordp3.cli import app
 
-    run_evaluation(trained_run, EvalOptions(episodes=2, workers=2, max_decisions=2), say=QUIET)
+    run_evaluation(trained_run, EvalOptions(episodes=2, workers=2, max_decisions=2))
     res = CliRunner().invoke(app, ["eval", "--run-dir", str(trained_run), "--episodes", "2", "--max-decisions", "2"])
     assert res.exit_code == 0, res.output
     assert "place_mouse" in res.output and "95% CI" in res.output
@@ -103,13 +104,13 @@ def test_eval_cli(trained_run, tmp_path):
 def test_eval_takes_any_models_tasks_seeds_and_folder_and_marks_training_seeds(trained_run, tmp_path):
     opts = EvalOptions(models=str(trained_run / "models"), tasks=("place_mouse",), seeds="train", out=tmp_path / "ev",
                        workers=1, max_decisions=1, strips=0)
-    records = run_evaluation(None, opts, say=QUIET)  # the run config is found beside the models folder
+    records = run_evaluation(None, opts)  # the run config is found beside the models folder
     assert [(r["seed"], r["seen"]) for r in records] == [(0, True), (1, True)]
     assert (tmp_path / "ev" / "report.md").is_file() and not (trained_run / EVAL_DIR / "ev").exists()
-    unseen = run_evaluation(trained_run, EvalOptions(seeds="1500", out=tmp_path / "ev2", workers=1, max_decisions=1), say=QUIET)
+    unseen = run_evaluation(trained_run, EvalOptions(seeds="1500", out=tmp_path / "ev2", workers=1, max_decisions=1))
     assert [(r["seed"], r["seen"]) for r in unseen] == [(1500, False)]
     with pytest.raises(ValueError, match="--tasks"):
-        run_evaluation(trained_run, EvalOptions(tasks=("place_bell",), out=tmp_path / "ev3"), say=QUIET)
+        run_evaluation(trained_run, EvalOptions(tasks=("place_bell",), out=tmp_path / "ev3"))
 
 
 def test_shipped_models_are_small_and_decide_as_the_run_s_own(trained_run, tmp_path):
@@ -129,7 +130,7 @@ def test_shipped_models_are_small_and_decide_as_the_run_s_own(trained_run, tmp_p
     a, b = own.anchors(points, state, 0, noise_seed=3), shipped.anchors(points, state, 0, noise_seed=3)
     assert abs(a - b).max() < 5e-3  # float16 weights: the same anchors within a few mm / mrad
     assert own.classify("put the mouse on the scale") == shipped.classify("put the mouse on the scale")
-    theirs = run_evaluation(None, EvalOptions(models=str(dest), seeds="1500", out=tmp_path / "b", workers=1, max_decisions=2), say=QUIET)
+    theirs = run_evaluation(None, EvalOptions(models=str(dest), seeds="1500", out=tmp_path / "b", workers=1, max_decisions=2))
     assert [r["seed"] for r in theirs] == [1500] and theirs[0]["decisions"] <= 2
     with pytest.raises(FileNotFoundError, match="no trained"):
         ship_models(tmp_path / "empty-run", tmp_path / "x")

@@ -17,7 +17,6 @@ from anchordp3.schemas.records import RolloutInfo
 from anchordp3.schemas.run import RunConfig
 from tiny_models import tiny_data, tiny_training
 
-QUIET = lambda m: None  # noqa: E731
 
 
 def test_dense_seed_count_takes_the_seed_prefix_nearest_to_the_budget():
@@ -54,7 +53,7 @@ def test_the_experiment_runs_both_arms_at_the_same_render_budget(ray_session, tm
         "training": tiny_training(3, 3, 3, loop={"log_interval_s": 30.0, "cpu_threads": 1}, device="cpu"),
         "eval": {"episodes": 1, "workers": 1, "max_decisions": 2},
     })
-    results = run_experiment(tmp_path, cfg, say=QUIET)
+    results = run_experiment(tmp_path, cfg)
     a, d = results["arms"]["anchors"], results["arms"]["dense"]
     # the dense arm renders about as much as the anchors arm, on fewer trajectories (a prefix of its seeds)
     assert 1 <= d["trajectories"] < a["trajectories"] and 0.5 * a["frames"] <= d["frames"] <= 1.5 * a["frames"]
@@ -75,7 +74,7 @@ def test_the_experiment_runs_both_arms_at_the_same_render_budget(ray_session, tm
     assert (tmp_path / "comparison.png").read_bytes()[:4] == b"\x89PNG"
     assert json.loads((tmp_path / "results.json").read_text()) == json.loads(json.dumps(results))
     # re-running resumes: nothing left to do, the same outcome, phase times only grow
-    again = run_experiment(tmp_path, cfg, say=QUIET)
+    again = run_experiment(tmp_path, cfg)
     assert again["arms"]["dense"]["seeds"] == d["seeds"] and again["arms"]["anchors"]["success"] == a["success"]
     assert all(again["arms"][arm]["seconds"][ph] >= results["arms"][arm]["seconds"][ph]
                for arm in ("anchors", "dense") for ph in ("data", "train", "eval"))

@@ -5,6 +5,7 @@ runs with nothing else changed, and a finished run redoes nothing."""
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -13,13 +14,12 @@ from ray import cloudpickle
 
 from anchordp3.pipeline.graph import EpisodeItem, Graph, Stage, StageOutput
 from anchordp3.pipeline.noop import NOOP_GROUP, NOOP_STOP_EVERY, NoopFinalInfo, NoopFirstInfo, NoopGroupInfo, NoopStepInfo, noop_graph
-from anchordp3.pipeline.runner import RunOptions, run_pipeline
+from anchordp3.pipeline.runner import RunOptions, fingerprints, run_pipeline, stage_changes
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.work import DATA_GRAPH
 from anchordp3.schemas.records import Payload, RolloutInfo
 from anchordp3.schemas.run import PoolConfig, RunConfig
 
-QUIET = lambda m: None  # noqa: E731
 CFG = RunConfig(name="graph", tasks=["place_mouse", "place_bell"], seeds="0-39")
 
 
@@ -43,7 +43,7 @@ def test_a_graph_that_needs_a_later_stage_or_groups_before_the_end_is_refused():
 
 def test_episodes_stop_where_a_record_says_and_groups_count_what_went_through(ray_session, tmp_path):
     graph = noop_graph(3)
-    counts = run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), say=QUIET, graph=graph)
+    counts = run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), graph=graph)
     n = 2 * 40
     stopped = {f"{t}/{s:06d}" for t in CFG.tasks for s in range(40) if s % NOOP_STOP_EVERY == 0}
     first = _records(tmp_path, graph, "noop0")
@@ -58,7 +58,7 @@ def test_episodes_stop_where_a_record_says_and_groups_count_what_went_through(ra
     assert sum(r.payload(NoopGroupInfo).episodes for r in groups.values()) == n - len(stopped)
     assert counts["noop2"]["done"] == n - len(stopped)
     before = {s: read_manifest(tmp_path / graph[s].folder).model_dump() for s in graph.names}
-    run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), say=QUIET, graph=graph)  # finished: nothing redone
+    run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), graph=graph)  # finished: nothing redone
     assert {s: read_manifest(tmp_path / graph[s].folder).model_dump() for s in graph.names} == before
 
 
@@ -77,8 +77,27 @@ def test_a_stage_added_to_a_graph_runs_with_nothing_else_changed(ray_session, tm
     first, step, group = noop_graph(2).stages
     tag = Stage("tag", "tags", _tag, TagInfo, __name__, lambda cfg: {}, needs=(NoopFirstInfo,), resources=PoolConfig(cpus=0.1))
     graph = Graph((first, tag, step, group))  # the one change: one more Stage in the list
-    run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), say=QUIET, graph=graph)
+    run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), graph=graph)
     tags = _records(tmp_path, graph, "tag")
     assert len(tags) == 2 * 40 - 8 and tags["place_bell/000003"].payload(TagInfo).tag == "place_bell:3"
     assert (tmp_path / "tags" / "place_bell-3.txt").read_text() == "seed 3"
     assert set(_records(tmp_path, graph, "noop1")) == set(tags)  # the stage after it runs on what it passed on
+
+
+def test_a_run_fingerprinted_under_a_former_config_layout_is_restamped_not_redone(ray_session, tmp_path):
+    first, step, group = noop_graph(2).stages
+    old_part = lambda cfg: {"tasks": cfg.tasks, "layout": 1}  # noqa: E731
+    old = Graph((replace(first, config=old_part), step, group))
+    run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), graph=old)
+    before = {s: read_manifest(tmp_path / old[s].folder) for s in old.names}
+    new = Graph((first, step, group), former=(lambda cfg: {"noop0": old_part(cfg)},))
+    assert stage_changes(CFG, tmp_path, Graph((first, step, group))) != {}  # without the former layout: stale
+    assert stage_changes(CFG, tmp_path, new) == {}  # with it: the same outputs
+    run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), graph=new)  # no --force needed
+    after = {s: read_manifest(tmp_path / new[s].folder) for s in new.names}
+    fps = fingerprints(CFG, new)
+    for s in new.names:
+        assert after[s].items == before[s].items  # nothing redone
+        assert after[s].fingerprint == fps[s] != before[s].fingerprint  # re-stamped for the new layout
+    other = CFG.model_copy(update={"tasks": ["place_mouse"]})  # another config is no former layout of this one
+    assert "config" in stage_changes(other, tmp_path, new)["noop0"]

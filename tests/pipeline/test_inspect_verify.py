@@ -38,7 +38,7 @@ cli = CliRunner()
 def run(ray_session, tmp_path_factory):
     """The module's run directory (tests that change it work on a copy)."""
     d = tmp_path_factory.mktemp("inspect") / "run"
-    run_pipeline(RunConfig.model_validate(TINY), d, RunOptions(progress_interval=60, faults=FAULTS), say=lambda m: None)
+    run_pipeline(RunConfig.model_validate(TINY), d, RunOptions(progress_interval=60, faults=FAULTS))
     return d
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+from anchordp3.logs import Capture
 from anchordp3.pipeline.recipe import run_recipe
 from anchordp3.schemas.recipe import RecipeConfig
 from tiny_models import tiny_data, tiny_training
@@ -16,8 +17,7 @@ def test_recipe_runs_data_training_and_both_evaluations_then_resumes_without_red
         "training": tiny_training(3, 3, 3, loop={"log_interval_s": 30.0, "cpu_threads": 1}, device="cpu"),
         "eval": {"episodes": 1, "train_episodes": 1, "workers": 1, "max_decisions": 2},
     })
-    lines: list[str] = []
-    results = run_recipe(tmp_path, cfg, say=lines.append)
+    results = run_recipe(tmp_path, cfg)
     assert results["episodes"] == 2 and results["samples"] > 0
     assert [r["episodes"] for r in results["unseen"]] == [1] and [r["episodes"] for r in results["train_seeds"]] == [1]
     assert set(results["models"]) == {"segmenter", "classifier", "policy"} and results["models"]["policy"]["steps"] == 3
@@ -28,6 +28,7 @@ def test_recipe_runs_data_training_and_both_evaluations_then_resumes_without_red
     assert "place_mouse" in report and "unseen seeds" in report and "first anchor cm" in report
     assert (tmp_path / "eval" / "report.md").is_file() and (tmp_path / "eval-train" / "report.md").is_file()
     assert json.loads((tmp_path / "results.json").read_text())["unseen"] == results["unseen"]
-    again: list[str] = []
-    assert run_recipe(tmp_path, cfg, say=again.append)["unseen"] == results["unseen"]
+    with Capture() as cap:
+        assert run_recipe(tmp_path, cfg)["unseen"] == results["unseen"]
+    again = [r.message for r in cap.records]
     assert any("1 already done" in line for line in again) and any("up to date" in line for line in again)

@@ -28,7 +28,6 @@ TINY = {
     "anchors": {"dagger": {"fraction": 0.2}}, "write": {"episodes_per_shard": 2, "validation_fraction": 0.25},
     "execution": {"pools": {s: {"workers": 1, "cpus": 0.4} for s in ("rollout", "anchors", "render", "features", "write")}},
 }
-QUIET = lambda m: None  # noqa: E731
 
 
 def tiny(**changes) -> RunConfig:
@@ -39,7 +38,7 @@ def tiny(**changes) -> RunConfig:
 def reference(ray_session, tmp_path_factory):
     """An uninterrupted run with one worker per stage, and its dataset hash."""
     run = tmp_path_factory.mktemp("ref")
-    run_pipeline(tiny(), run, RunOptions(progress_interval=60), say=QUIET)
+    run_pipeline(tiny(), run, RunOptions(progress_interval=60))
     return run, dataset_content_hash(run)
 
 
@@ -55,14 +54,14 @@ def test_uninterrupted_run_writes_a_complete_dataset_with_manifests(reference):
 
 def test_two_workers_per_stage_give_the_same_dataset_bytes(reference, tmp_path):
     pools = {s: {"workers": 2, "cpus": 0.2} for s in ("rollout", "anchors", "render", "features", "write")}
-    run_pipeline(tiny(execution={"pools": pools}), tmp_path, RunOptions(progress_interval=60), say=QUIET)
+    run_pipeline(tiny(execution={"pools": pools}), tmp_path, RunOptions(progress_interval=60))
     assert dataset_content_hash(tmp_path) == reference[1]
 
 
 def test_rerunning_a_finished_run_redoes_nothing(reference):
     run, h = reference
     before = {s: read_manifest(stage_dir(run, s)).model_dump() for s in ("rollout", "write")}
-    run_pipeline(tiny(), run, RunOptions(progress_interval=60), say=QUIET)
+    run_pipeline(tiny(), run, RunOptions(progress_interval=60))
     assert {s: read_manifest(stage_dir(run, s)).model_dump() for s in ("rollout", "write")} == before
     assert dataset_content_hash(run) == h
 
@@ -91,7 +90,7 @@ def test_sigkill_then_resume_gives_the_uninterrupted_dataset(reference, tmp_path
     finally:
         proc.wait()
     assert not (stage_dir(run, "write") / "dataset.json").exists()
-    run_pipeline(tiny(), run, RunOptions(progress_interval=60), say=QUIET)
+    run_pipeline(tiny(), run, RunOptions(progress_interval=60))
     assert dataset_content_hash(run) == reference[1]
     for s in ("rollout", "anchors", "render", "features"):
         m = read_manifest(stage_dir(run, s))
@@ -101,7 +100,7 @@ def test_sigkill_then_resume_gives_the_uninterrupted_dataset(reference, tmp_path
 def test_injected_faults_are_retried_then_recorded_as_failed(ray_session, tmp_path):
     faults = "render:place_bell/000000:1,features:place_mouse/000001:5,rollout:place_bell/000001:9:crash"
     cfg = tiny(execution={**TINY["execution"], "max_attempts": 2, "max_failure_ratio": 1.0})
-    run_pipeline(cfg, tmp_path, RunOptions(progress_interval=60, faults=faults), say=QUIET)
+    run_pipeline(cfg, tmp_path, RunOptions(progress_interval=60, faults=faults))
     render = read_manifest(stage_dir(tmp_path, "render")).items["place_bell/000000"]
     assert render.status == "done" and render.attempts == 2  # failed once, then succeeded
     feats = read_manifest(stage_dir(tmp_path, "features")).items["place_mouse/000001"]
@@ -115,12 +114,12 @@ def test_injected_faults_are_retried_then_recorded_as_failed(ray_session, tmp_pa
 
 
 def test_a_changed_config_is_refused_until_forced(reference, tmp_path):
-    run_pipeline(tiny(tasks=["place_mouse"], seeds="0"), tmp_path, RunOptions(progress_interval=60), say=QUIET)
+    run_pipeline(tiny(tasks=["place_mouse"], seeds="0"), tmp_path, RunOptions(progress_interval=60))
     changed = tiny(tasks=["place_mouse"], seeds="0", features={"n_points": 128})
     with pytest.raises(StaleStageError, match=r"features \(config\), write \(upstream features\)"):
-        run_pipeline(changed, tmp_path, RunOptions(progress_interval=60), say=QUIET)
+        run_pipeline(changed, tmp_path, RunOptions(progress_interval=60))
     rollout_before = read_manifest(stage_dir(tmp_path, "rollout")).model_dump()
-    run_pipeline(changed, tmp_path, RunOptions(force=True, progress_interval=60), say=QUIET)
+    run_pipeline(changed, tmp_path, RunOptions(force=True, progress_interval=60))
     assert read_manifest(stage_dir(tmp_path, "rollout")).model_dump() == rollout_before  # upstream kept
     from anchordp3.dataset.reader import open_dataset
 
@@ -139,7 +138,7 @@ def test_discarding_frames_keeps_the_dataset_and_verifies(reference, tmp_path):
     from anchordp3.pipeline.verify import verify_run
     from anchordp3.stages.render import load_frames
 
-    run_pipeline(tiny(render={"keep_frames": False}), tmp_path, RunOptions(progress_interval=60), say=QUIET)
+    run_pipeline(tiny(render={"keep_frames": False}), tmp_path, RunOptions(progress_interval=60))
     assert dataset_content_hash(tmp_path) == reference[1]
     frames = sorted((stage_dir(tmp_path, "render") / "frames").rglob("*.npz"))
     assert frames and all("rgb" not in load_frames(f) and "K" in load_frames(f) for f in frames)

@@ -9,8 +9,9 @@ import sqlite3
 import pytest
 
 from anchordp3.pipeline.store import (
-    JOURNAL, MANIFEST, RECORDS, ManifestStore, StaleStageError, has_manifest, read_manifest, read_summary,
+    JOURNAL, MANIFEST, RECORDS, ManifestStore, StaleStageError, has_manifest, read_manifest, read_stopped, read_summary,
 )
+from anchordp3.pipeline.noop import NoopFirstInfo
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord, StageManifest
 
 FP = Fingerprint(code_version="1", code_hash="c", config_hash="a")
@@ -106,3 +107,30 @@ def test_a_changed_fingerprint_is_refused_unless_reset_or_adopted(tmp_path):
     fresh = ManifestStore(d, "write", FP, reset=True)
     assert len(fresh.items) == 0
     fresh.close()
+
+
+def _stop_rec(i: int) -> ItemRecord:
+    return ItemRecord(item=f"t/{i:06d}", status="done", output=None, seconds=0.1,
+                      info=NoopFirstInfo(seed=i, kept=i % 3 != 0).model_dump(mode="json"))
+
+
+def test_items_that_stop_their_episode_are_found_without_parsing_every_record(tmp_path):
+    store = ManifestStore(tmp_path / "s", "rollout", FP, payload=NoopFirstInfo)
+    store.record_many([_stop_rec(i) for i in range(10)] + [_rec(10, "failed")])
+    assert store.stopped() == {"t/000000", "t/000003", "t/000006", "t/000009"}
+    store.close()
+    with sqlite3.connect(tmp_path / "s" / RECORDS) as db:  # the records' JSON blanked: the query does not read it
+        db.execute("UPDATE items SET record = '{}' WHERE stops = 0")
+    assert [r.item for r in read_stopped(tmp_path / "s", NoopFirstInfo)] == ["t/000000", "t/000003", "t/000006", "t/000009"]
+
+
+def test_a_file_from_before_the_stops_column_gets_it_filled_from_its_records(tmp_path):
+    store = ManifestStore(tmp_path / "s", "rollout", FP, payload=NoopFirstInfo)
+    store.record_many([_stop_rec(i) for i in range(7)])
+    store.close()
+    with sqlite3.connect(tmp_path / "s" / RECORDS) as db:  # the layout of the first SQLite store
+        db.executescript("DROP INDEX items_stops; ALTER TABLE items DROP COLUMN stops;")
+    assert [r.item for r in read_stopped(tmp_path / "s", NoopFirstInfo)] == ["t/000000", "t/000003", "t/000006"]  # read by parsing
+    again = ManifestStore(tmp_path / "s", "rollout", FP, payload=NoopFirstInfo)  # a writer adds and fills the column
+    assert again.stopped() == {"t/000000", "t/000003", "t/000006"}
+    again.close()

@@ -13,6 +13,7 @@ import torch
 import yaml
 from typer.testing import CliRunner
 
+from anchordp3.logs import Capture
 from anchordp3.cli import app
 from anchordp3.dataset.files import file_sha256
 from anchordp3.dataset.reader import open_dataset
@@ -20,7 +21,7 @@ from anchordp3.models.device import seed_everything
 from anchordp3.models.policy import AnchorDiffusionPolicy
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import read_manifest
-from anchordp3.pipeline.training import MODELS, load_training_config, model_dir, train_models
+from anchordp3.pipeline.training import LOG_FILE, MODELS, load_training_config, model_dir, train_models
 from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.records import ModelInfo
 from anchordp3.schemas.run import RunConfig
@@ -35,7 +36,6 @@ from tiny_models import tiny_data, tiny_training
 
 DATA = tiny_data("tiny-train", ["place_mouse", "place_bell"], "0-1")
 TRAIN = tiny_training(40, 12, 40, val_predict_samples=8, loop={"log_interval_s": 0.5})  # tiny networks, a few dozen steps each
-QUIET = lambda m: None  # noqa: E731
 
 
 def tiny_cfg(steps: int | None = None, device: str = "auto", **loop) -> TrainingConfig:
@@ -58,16 +58,16 @@ def train_yaml(tmp_path_factory) -> Path:
 def run_dir(ray_session, tmp_path_factory) -> Path:
     """A finished tiny data run (2 tasks x 2 seeds, 256 points)."""
     run = tmp_path_factory.mktemp("run")
-    run_pipeline(RunConfig.model_validate(DATA), run, RunOptions(progress_interval=60), say=QUIET)
+    run_pipeline(RunConfig.model_validate(DATA), run, RunOptions(progress_interval=60))
     return run
 
 
 @pytest.fixture(scope="module")
 def trained(run_dir, train_yaml):
     """``train_models`` of all three models, with the progress lines it said."""
-    lines: list[str] = []
-    results = train_models(run_dir, MODELS, load_training_config(train_yaml), say=lines.append)
-    return run_dir, results, lines
+    with Capture() as cap:
+        results = train_models(run_dir, MODELS, load_training_config(train_yaml))
+    return run_dir, results, [r.message for r in cap.records]
 
 
 def test_train_all_writes_each_model_with_its_manifest(trained):
@@ -98,6 +98,7 @@ def test_train_all_writes_each_model_with_its_manifest(trained):
     assert policy.items["policy"].payload(ModelInfo).critical_channel == "segmenter"
     assert policy.fingerprint.upstream["segmenter"] == read_manifest(model_dir(run, "segmenter")).items["segmenter"].checksum
     assert any("steps/s" in line and "ETA" in line for line in lines)
+    assert "policy: done in" in (run / LOG_FILE).read_text()  # the run's training log holds the same lines
     assert 0.0 <= read_manifest(model_dir(run, "segmenter")).items["segmenter"].payload(ModelInfo).metrics["iou"] <= 1.0
 
 
@@ -132,12 +133,12 @@ def test_checkpoints_load_back_to_identical_outputs(trained, tmp_path):
     batch = next(iter(training_loop.eval_batches(PolicyJob(data, cfg, cpu, CriticalChannel("ground_truth")).val_ds, 4)))
 
     seg = SegmenterJob(data, cfg, cpu)
-    res = run_training(seg, tmp_path / "seg", cfg.loop, "fp", QUIET)
+    res = run_training(seg, tmp_path / "seg", cfg.loop, "fp")
     seg.model.eval()
     assert torch.equal(seg.model(batch["points"]), load_segmenter(res.model_path)(batch["points"]))
 
     pol = PolicyJob(data, cfg, cpu, CriticalChannel("ground_truth"))
-    res = run_training(pol, tmp_path / "pol", cfg.loop, "fp", QUIET)
+    res = run_training(pol, tmp_path / "pol", cfg.loop, "fp")
     obs = pol.observation(batch)
     want = pol.ema.averaged_model.predict(obs, generator=torch.Generator().manual_seed(3))
     got = load_policy(res.model_path).predict(obs, generator=torch.Generator().manual_seed(3))
@@ -157,11 +158,11 @@ def test_stopped_or_crashed_training_resumes_to_the_same_step_and_weights(traine
     data = open_dataset(stage_dir(run, "write"))
     cfg = tiny_cfg(steps=8, checkpoint_every=2, eval_every=3)
     cpu, ch = torch.device("cpu"), CriticalChannel("ground_truth")
-    ref = train_policy(data, cfg, tmp_path / "ref", cpu, ch, "fp", QUIET)
+    ref = train_policy(data, cfg, tmp_path / "ref", cpu, ch, "fp")
 
-    stopped = train_policy(data, cfg, tmp_path / "stop", cpu, ch, "fp", QUIET, stop_at=3)
+    stopped = train_policy(data, cfg, tmp_path / "stop", cpu, ch, "fp", stop_at=3)
     assert not stopped.finished and stopped.step == 3 and (tmp_path / "stop/checkpoints/last.pt").is_file()
-    resumed = train_policy(data, cfg, tmp_path / "stop", cpu, ch, "fp", QUIET)
+    resumed = train_policy(data, cfg, tmp_path / "stop", cpu, ch, "fp")
     assert resumed.finished and (resumed.resumed_from, resumed.step) == (3, 8)
 
     calls = {"n": 0}
@@ -175,9 +176,9 @@ def test_stopped_or_crashed_training_resumes_to_the_same_step_and_weights(traine
 
     monkeypatch.setattr(PolicyJob, "train_step", crash_at_six)
     with pytest.raises(RuntimeError, match="simulated crash"):
-        train_policy(data, cfg, tmp_path / "crash", cpu, ch, "fp", QUIET)
+        train_policy(data, cfg, tmp_path / "crash", cpu, ch, "fp")
     monkeypatch.setattr(PolicyJob, "train_step", real_step)
-    crashed = train_policy(data, cfg, tmp_path / "crash", cpu, ch, "fp", QUIET)
+    crashed = train_policy(data, cfg, tmp_path / "crash", cpu, ch, "fp")
     assert (crashed.resumed_from, crashed.step) == (4, 8)  # last periodic checkpoint
     rows = [r for r in read_metrics(tmp_path / "crash/metrics.csv") if r["split"] == "train" and r["metric"] == "loss"]
     assert [int(r["step"]) for r in rows] == list(range(1, 9))  # rows of the lost steps 5 were dropped
@@ -196,9 +197,9 @@ def test_pipeline_stop_then_rerun_resumes_and_stale_models_are_refused(trained, 
     shutil.copytree(src, run, ignore=shutil.ignore_patterns("classifier", ".lock"))
     shutil.rmtree(model_dir(run, "segmenter"))
     cfg = load_training_config(train_yaml)
-    first = train_models(run, ["segmenter"], cfg, say=QUIET, stop_at={"segmenter": 10})
+    first = train_models(run, ["segmenter"], cfg, stop_at={"segmenter": 10})
     assert first[0].status == "stopped" and not read_manifest(model_dir(run, "segmenter")).complete
-    again = train_models(run, ["segmenter"], cfg, say=QUIET)
+    again = train_models(run, ["segmenter"], cfg)
     assert again[0].status == "trained" and again[0].record.payload(ModelInfo).resumed_from == 10
     assert again[0].record.payload(ModelInfo).steps == TRAIN["segmenter"]["optim"]["steps"]
     # same config, same dataset, same code: the weights match the uninterrupted run's
@@ -208,11 +209,11 @@ def test_pipeline_stop_then_rerun_resumes_and_stale_models_are_refused(trained, 
     assert all(torch.equal(ref[n], got[n]) for n in ref)
 
     with pytest.raises(ValueError, match="different training config; pass --force"):
-        train_models(run, ["segmenter"], load_training_config(train_yaml, steps=5), say=QUIET)
-    forced = train_models(run, ["segmenter"], load_training_config(train_yaml, steps=5), force=True, say=QUIET)
+        train_models(run, ["segmenter"], load_training_config(train_yaml, steps=5))
+    forced = train_models(run, ["segmenter"], load_training_config(train_yaml, steps=5), force=True)
     assert forced[0].status == "trained" and forced[0].record.payload(ModelInfo).steps == 5
     with pytest.raises(ValueError, match="different segmenter"):  # the policy's channel came from the old one
-        train_models(run, ["policy"], cfg, say=QUIET)
+        train_models(run, ["policy"], cfg)
 
 
 def test_cli_train_reports_up_to_date_models_and_bad_input_in_one_line(trained, train_yaml, tmp_path):
@@ -249,5 +250,5 @@ def test_segmenter_and_policy_train_on_cuda_with_mixed_precision(trained, tmp_pa
     cfg = tiny_cfg(steps=4, device="cuda")
     cuda = torch.device("cuda")
     for job in (SegmenterJob(data, cfg, cuda), PolicyJob(data, cfg, cuda, CriticalChannel("ground_truth"))):
-        res = run_training(job, tmp_path / job.name, cfg.loop, "fp", QUIET)
+        res = run_training(job, tmp_path / job.name, cfg.loop, "fp")
         assert res.finished and all(torch.isfinite(torch.tensor(v)) for v in res.metrics.values())

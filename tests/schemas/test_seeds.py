@@ -41,4 +41,14 @@ def test_a_billion_seeds_validate_without_being_expanded():
     cfg = RunConfig(tasks=["place_mouse"], seeds="0-999999999")
     seeds = cfg.seed_list
     assert len(seeds) == 10**9 and seeds[-1] == 999_999_999 and 123_456_789 in seeds
-    assert cfg.stage_config("rollout")["seeds"] == "0-999999999"  # fingerprints hash the ranges
+    assert cfg.stage_config("write")["episodes"]["seeds"] == "0-999999999"  # fingerprints hash the ranges
+
+
+def test_more_seeds_change_only_the_write_stages_part_of_the_config():
+    from anchordp3.pipeline.work import DATA_STAGES
+    from anchordp3.schemas.run import RunConfig
+
+    few, more = (RunConfig(tasks=["place_mouse"], seeds=s) for s in ("0-9", "0-19"))
+    differ = [s for s in DATA_STAGES if few.stage_config(s) != more.stage_config(s)]
+    assert differ == ["write"]  # an episode's outputs do not depend on the run's other episodes
+    assert few.stage_config("rollout", layout=1) != more.stage_config("rollout", layout=1)  # they did before

@@ -1,0 +1,153 @@
+"""A real multi-node Ray cluster on one machine: a head and two worker nodes, each its own raylet
+and object store, all bound to 127.0.0.1. A run joins it with ``--address``, spreads its actors
+over the nodes (each record names its node) and writes the same dataset bytes as a local run;
+a worker node lost mid-run, the driver killed and started again, and 20 SIGKILLs of the driver
+at random instants each lose nothing and end with those bytes.
+
+Marked ``cluster`` (not in the default suite): ``pytest -m cluster``."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import ray
+import yaml
+from ray.cluster_utils import Cluster
+
+from anchordp3.pipeline.report import dataset_content_hash
+from anchordp3.pipeline.runner import RunOptions, run_pipeline
+from anchordp3.pipeline.store import count_records, read_manifest
+from anchordp3.pipeline.work import DATA_STAGES, stage_dir
+from anchordp3.schemas.run import RunConfig
+
+pytestmark = pytest.mark.cluster
+
+STAGES = ("rollout", "anchors", "render", "features", "write")
+# 3 logical CPUs in all, so that every pool still fits once a 2-CPU worker node is gone
+POOLS = {"rollout": {"workers": 2, "cpus": 0.4}, "anchors": {"workers": 1, "cpus": 0.2}, "render": {"workers": 2, "cpus": 0.5},
+         "features": {"workers": 2, "cpus": 0.4}, "write": {"workers": 1, "cpus": 0.2}}
+TINY = {
+    "name": "cluster", "tasks": ["place_mouse", "place_bell"], "seeds": "0-3", "preset": "randomized",
+    "cameras": {"width": 64, "height": 48}, "features": {"n_points": 256},
+    "anchors": {"dagger": {"fraction": 0.2}}, "write": {"episodes_per_shard": 2, "validation_fraction": 0.25},
+    "execution": {"pools": POOLS},
+}
+CFG = RunConfig.model_validate(TINY)
+LOOPBACK = {"node_ip_address": "127.0.0.1"}
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "anchordp3.cli", *args]
+
+
+@pytest.fixture(scope="module")
+def config_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("cfg") / "cluster.yaml"
+    path.write_text(yaml.safe_dump(TINY, sort_keys=False))
+    return path
+
+
+@pytest.fixture(scope="module")
+def local_hash(config_file, tmp_path_factory) -> str:
+    """The dataset hash of the same config run on one local Ray (the CLI, its own process)."""
+    run = tmp_path_factory.mktemp("local")
+    subprocess.run(_cli("-q", "run", str(config_file), "--run-dir", str(run)), check=True, timeout=900)
+    return dataset_content_hash(run)
+
+
+@pytest.fixture
+def cluster():
+    """A head (1 CPU) and two worker nodes (2 CPUs each), every process on 127.0.0.1."""
+    if ray.is_initialized():
+        ray.shutdown()
+    c = Cluster(initialize_head=True, head_node_args={**LOOPBACK, "num_cpus": 1, "include_dashboard": False})
+    workers = [c.add_node(**LOOPBACK, num_cpus=2) for _ in range(2)]
+    c.wait_for_nodes()
+    c.workers = workers
+    yield c
+    ray.shutdown()
+    c.shutdown()
+
+
+def _nodes(run: Path) -> dict[str, set[str]]:
+    """Stage → the nodes that made its items (from the records)."""
+    return {s: {r.node for r in read_manifest(stage_dir(run, s)).items.values() if r.node} for s in STAGES}
+
+
+def test_a_run_spreads_over_the_nodes_and_writes_the_local_runs_bytes(cluster, local_hash, tmp_path):
+    run_pipeline(CFG, tmp_path, RunOptions(address=cluster.address, progress_interval=60))
+    nodes = _nodes(tmp_path)
+    assert len(nodes["render"]) == 2 and len(set().union(*nodes.values())) == 3  # every node did some of the work
+    node_ids = {n["NodeID"][:12] for n in ray.nodes() if n["Alive"]}
+    assert set().union(*nodes.values()) <= node_ids
+    assert all(n["NodeManagerAddress"] == "127.0.0.1" for n in ray.nodes())  # loopback only
+    assert dataset_content_hash(tmp_path) == local_hash
+
+
+def test_losing_a_worker_node_mid_run_loses_nothing(cluster, local_hash, tmp_path):
+    lost = cluster.workers[1]
+
+    def kill_when_rendering() -> None:
+        while count_records(stage_dir(tmp_path, "render")) < 2:
+            time.sleep(0.2)
+        cluster.remove_node(lost, allow_graceful=False)
+
+    killer = threading.Thread(target=kill_when_rendering, daemon=True)
+    killer.start()
+    run_pipeline(CFG, tmp_path, RunOptions(address=cluster.address, progress_interval=60))
+    killer.join(timeout=5)
+    assert not killer.is_alive()
+    for s in DATA_STAGES:
+        m = read_manifest(stage_dir(tmp_path, s))
+        assert m.complete and m.counts.failed == 0, s
+    assert dataset_content_hash(tmp_path) == local_hash
+
+
+def _driver(config_file: Path, run: Path, address: str) -> subprocess.Popen:
+    return subprocess.Popen(_cli("-q", "run", str(config_file), "--run-dir", str(run), "--address", address),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+
+
+def _records(run: Path) -> int:
+    return sum(count_records(stage_dir(run, s)) for s in DATA_STAGES if stage_dir(run, s).exists())
+
+
+def test_the_driver_killed_mid_run_then_started_again_resumes_to_the_same_bytes(cluster, config_file, local_hash, tmp_path):
+    driver = _driver(config_file, tmp_path, cluster.address)
+    while _records(tmp_path) < 6 and driver.poll() is None:
+        time.sleep(0.2)
+    assert driver.poll() is None, "the run ended before it could be killed"
+    os.killpg(driver.pid, signal.SIGKILL)
+    driver.wait()
+    done_before = _records(tmp_path)
+    again = _driver(config_file, tmp_path, cluster.address)
+    assert again.wait(timeout=900) == 0, again.stderr.read().decode()[-2000:]
+    assert _records(tmp_path) >= done_before and dataset_content_hash(tmp_path) == local_hash
+
+
+def test_twenty_sigkills_of_the_driver_at_random_instants_then_a_resume(cluster, config_file, local_hash, tmp_path):
+    rng = random.Random(20)  # the instants are random, and the same on every run of the test
+    kills = 0
+    while kills < 20:
+        driver = _driver(config_file, tmp_path, cluster.address)
+        time.sleep(rng.uniform(1.0, 12.0))
+        if driver.poll() is not None:  # it finished before this kill: start over on a fresh run directory
+            break
+        os.killpg(driver.pid, signal.SIGKILL)
+        driver.wait()
+        kills += 1
+    final = _driver(config_file, tmp_path, cluster.address)
+    assert final.wait(timeout=900) == 0, final.stderr.read().decode()[-2000:]
+    assert kills == 20
+    for s in DATA_STAGES:
+        m = read_manifest(stage_dir(tmp_path, s))
+        assert m.complete and m.counts.failed == 0, s
+    assert dataset_content_hash(tmp_path) == local_hash
