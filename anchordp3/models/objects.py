@@ -100,6 +100,12 @@ def object_tokens(points: torch.Tensor, state: torch.Tensor, layout: StateLayout
     return feats * present
 
 
+def token_gripper_offsets(tokens: torch.Tensor) -> torch.Tensor:
+    """Each token's centroid minus each arm's end effector, back in metres: ``tokens (B, k,
+    TOKEN_FEATURES)`` -> ``(B, k, len(ARMS), 3)`` (0 for an absent object)."""
+    return tokens[..., 3:3 + 3 * len(ARMS)].unflatten(-1, (len(ARMS), 3)) / POSITION_SCALE
+
+
 class ObjectTokenEncoder(torch.nn.Module):
     """The K tokens (concatenated, largest cluster first) -> an MLP feature for the FiLM condition.
 

@@ -25,7 +25,7 @@ from torch import nn
 from anchordp3.models.device import autocast
 from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
 from anchordp3.models.normalizer import MinMaxNormalizer
-from anchordp3.models.objects import POSITION_SCALE, ObjectTokenEncoder, object_tokens
+from anchordp3.models.objects import ObjectTokenEncoder, object_tokens, token_gripper_offsets
 from anchordp3.models.unet1d import ConditionalUnet1D
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
@@ -144,9 +144,9 @@ class AnchorDiffusionPolicy(nn.Module):
         if self.anchor_gates is None or tokens is None:
             return shift
         gates = self.anchor_gates(cond.float()).view(-1, h, len(ARMS), self.config.object_tokens)
+        offsets = token_gripper_offsets(tokens.float())  # (B, K, arms, 3) metres
         for a, arm in enumerate(ARMS):
-            offsets = tokens[:, :, 3 + 3 * a:6 + 3 * a].float() / POSITION_SCALE  # (B, K, 3): centroid - ee, metres
-            shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a], offsets)
+            shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a], offsets[:, :, a])
         return shift * self.delta_normalizer.scale.view(h, d).to(shift.dtype)
 
     def compute_loss(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
