@@ -15,7 +15,14 @@ the policy can be given those clusters directly:
 3. a few Lloyd iterations (k-means) assign every critical point to its nearest centre;
 4. clusters are ordered by size, largest first, and each becomes a token of ``TOKEN_FEATURES``
    numbers: its centroid, its centroid's offset from each end effector, its spread, its top and its
-   share of the critical points (positions in metres x ``POSITION_SCALE``).
+   share of the critical points (positions in metres x ``POSITION_SCALE``); with ``orientation``,
+   two more: the direction of its points' principal axis in the table plane (below).
+
+The per-axis spread cannot tell an object turned +30 degrees from one turned -30 degrees, and the
+yaw of an elongated object decides its grasp (a mouse grasped 30 degrees off is missed). The
+orientation features are the cluster's xy second moments, ``((cxx - cyy), 2 cxy) / (cxx + cyy)``:
+``anisotropy x (cos 2θ, sin 2θ)`` for a principal axis at yaw θ (π-periodic, as the axis is), zero
+for a round object, turning by 2φ when the scene turns by φ and unchanged when it moves.
 
 Everything is batched tensor arithmetic (no randomness, no Python loop over samples), so it runs
 inside the policy's forward pass, after augmentation, at training and at inference alike.
@@ -33,6 +40,12 @@ SEED_RADIUS = 0.02  # metres: neighbours counted for a seed's density
 SEED_CANDIDATES = 256  # points (an even subsample) considered as seeds
 LLOYD_ITERATIONS = 6
 TOKEN_FEATURES = 3 + 3 * len(ARMS) + 3 + 1 + 1
+ORIENTATION_FEATURES = 2  # anisotropy x (cos 2θ, sin 2θ) of a cluster's principal axis in the table plane
+
+
+def token_features(orientation: bool = False) -> int:
+    """Numbers per object token: ``TOKEN_FEATURES``, plus ``ORIENTATION_FEATURES`` with ``orientation``."""
+    return TOKEN_FEATURES + (ORIENTATION_FEATURES if orientation else 0)
 
 
 def cluster_critical_points(xyz: torch.Tensor, critical: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -70,14 +83,16 @@ def cluster_critical_points(xyz: torch.Tensor, critical: torch.Tensor, k: int) -
 
 
 def object_tokens(points: torch.Tensor, state: torch.Tensor, layout: StateLayout, k: int,
-                  threshold: float = 0.5) -> torch.Tensor:
+                  threshold: float = 0.5, orientation: bool = False) -> torch.Tensor:
     """The K critical-object tokens of each observation.
 
     points: (B, N, C) in data units, xyz (metres) first and the critical probability last;
-    state: (B, D) in data units. Returns (B, k, TOKEN_FEATURES) float32: per cluster (largest
-    first) its centroid, the centroid minus each arm's end effector (``ARMS`` order), the per-axis
-    spread, the top (highest z) minus the centroid's z, all x their scales, and its share of the
-    critical points. A cloud without critical points gives zero tokens."""
+    state: (B, D) in data units. Returns (B, k, token_features(orientation)) float32: per cluster
+    (largest first) its centroid, the centroid minus each arm's end effector (``ARMS`` order), the
+    per-axis spread, the top (highest z) minus the centroid's z, all x their scales, its share of
+    the critical points and, with ``orientation``, its principal axis in the table plane as
+    anisotropy x (cos 2θ, sin 2θ) (module docstring). A cloud without critical points gives zero
+    tokens."""
     xyz = points[..., :3].float()
     critical = points[..., -1] > threshold
     assign, _ = cluster_critical_points(xyz, critical, k)
@@ -90,14 +105,28 @@ def object_tokens(points: torch.Tensor, state: torch.Tensor, layout: StateLayout
     top = torch.where(member.bool(), xyz[..., 2:3].expand(-1, -1, k), torch.full_like(member, -1e3)).amax(1)  # (B, k)
     ee = [state[:, None, layout.ee_xyz(arm)].float() for arm in ARMS]
     present = (count > 0).float()[..., None]
-    feats = torch.cat([
+    parts = [
         centroid * POSITION_SCALE,
         *[(centroid - e) * POSITION_SCALE for e in ee],
         spread * SPREAD_SCALE,
         ((top - centroid[..., 2]) * SPREAD_SCALE)[..., None],
         (count / critical.float().sum(1, keepdim=True).clamp(min=1))[..., None],
-    ], dim=-1)
-    return feats * present
+    ]
+    if orientation:
+        parts.append(principal_axis(xyz - own, member, safe))
+    return torch.cat(parts, dim=-1) * present
+
+
+def principal_axis(centred: torch.Tensor, member: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+    """Each cluster's principal axis in the table plane: ``centred (B, N, 3)`` points minus their
+    own cluster's centroid (metres), ``member (B, N, k)`` 0/1, ``count (B, k, 1)`` members (at
+    least 1) -> ``(B, k, 2)``: ``((cxx - cyy), 2 cxy) / (cxx + cyy)`` of the xy second moments,
+    i.e. anisotropy (0 round, 1 a line) x (cos 2θ, sin 2θ)."""
+    x, y = centred[..., 0], centred[..., 1]
+    moments = torch.stack([x * x, y * y, x * y], dim=-1)  # (B, N, 3)
+    cxx, cyy, cxy = (torch.einsum("bnk,bnc->bkc", member, moments) / count).unbind(-1)
+    total = (cxx + cyy).clamp(min=1e-10)
+    return torch.stack([(cxx - cyy) / total, 2 * cxy / total], dim=-1)
 
 
 def token_gripper_offsets(tokens: torch.Tensor) -> torch.Tensor:
@@ -109,12 +138,12 @@ def token_gripper_offsets(tokens: torch.Tensor) -> torch.Tensor:
 class ObjectTokenEncoder(torch.nn.Module):
     """The K tokens (concatenated, largest cluster first) -> an MLP feature for the FiLM condition.
 
-    tokens: (B, k, TOKEN_FEATURES) -> (B, out_dim)."""
+    tokens: (B, k, features) -> (B, out_dim); ``features`` is ``token_features(orientation)``."""
 
-    def __init__(self, k: int, hidden_dim: int = 128, out_dim: int = 64) -> None:
+    def __init__(self, k: int, hidden_dim: int = 128, out_dim: int = 64, features: int = TOKEN_FEATURES) -> None:
         super().__init__()
         self.net = torch.nn.Sequential(
-            torch.nn.Linear(k * TOKEN_FEATURES, hidden_dim), torch.nn.ReLU(inplace=True),
+            torch.nn.Linear(k * features, hidden_dim), torch.nn.ReLU(inplace=True),
             torch.nn.Linear(hidden_dim, out_dim), torch.nn.LayerNorm(out_dim))
         self.out_dim = out_dim
 

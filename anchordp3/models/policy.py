@@ -25,7 +25,7 @@ from torch import nn
 from anchordp3.models.device import autocast
 from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
 from anchordp3.models.normalizer import MinMaxNormalizer
-from anchordp3.models.objects import ObjectTokenEncoder, object_tokens, token_gripper_offsets
+from anchordp3.models.objects import ObjectTokenEncoder, object_tokens, token_features, token_gripper_offsets
 from anchordp3.models.unet1d import ConditionalUnet1D
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
@@ -72,7 +72,10 @@ class AnchorDiffusionPolicy(nn.Module):
         encoder = config.point_encoder.model_copy(update={"in_channels": self.point_channels + extra})
         self.point_encoder = TaskConditionedEncoder(config.num_tasks, encoder)
         self.state_encoder = StateEncoder(config.state_encoder)
-        self.object_encoder = ObjectTokenEncoder(config.object_tokens, out_dim=config.object_encoder_dim) if config.object_tokens else None
+        self.object_encoder = None
+        if config.object_tokens:
+            self.object_encoder = ObjectTokenEncoder(config.object_tokens, out_dim=config.object_encoder_dim,
+                                                     features=token_features(config.object_orientation))
         self.unet = ConditionalUnet1D(config.action_dim, config.cond_dim, config.unet)
         self.point_normalizer = MinMaxNormalizer(self.point_channels)
         self.state_normalizer = MinMaxNormalizer(config.action_dim)
@@ -121,7 +124,7 @@ class AnchorDiffusionPolicy(nn.Module):
         return self._condition(obs)[0]
 
     def _condition(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """obs -> (FiLM condition (B, cond_dim), object tokens (B, K, TOKEN_FEATURES) or None)."""
+        """obs -> (FiLM condition (B, cond_dim), object tokens (B, K, token features) or None)."""
         points, state, task_id = self._observation(obs)
         normed = self.point_normalizer(points)
         if self.config.gripper_points:
@@ -129,7 +132,8 @@ class AnchorDiffusionPolicy(nn.Module):
         parts = [self.point_encoder(normed, task_id), self.state_encoder(self.state_normalizer(state))]
         tokens = None
         if self.object_encoder is not None:
-            tokens = object_tokens(points, state, self.layout, self.config.object_tokens)
+            tokens = object_tokens(points, state, self.layout, self.config.object_tokens,
+                                   orientation=self.config.object_orientation)
             parts.append(self.object_encoder(tokens.to(parts[0].dtype)))
         return torch.cat(parts, dim=-1), tokens
 

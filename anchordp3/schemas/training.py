@@ -244,6 +244,11 @@ class PolicyConfig(_Config):
         description="Critical-object tokens beside the point encoder: the points the critical channel marks, "
                     "clustered into this many objects (k-means, largest first), each summarised by its centroid, its "
                     "offset from each end effector, its spread and size (models.objects); 0: none, as in the report.")
+    object_orientation: bool = Field(
+        default=False,
+        description="Each object token also carries the direction of its points' principal axis in the table plane, "
+                    "anisotropy x (cos 2θ, sin 2θ) (models.objects.principal_axis): the yaw at which an elongated object "
+                    "is grasped, which the per-axis spread cannot tell apart from its mirror image (needs object_tokens > 0).")
     object_encoder_dim: int = Field(default=64, ge=1, description="Width of the object tokens' feature in the FiLM condition (with object_tokens > 0).")
     anchored_offsets: bool = Field(
         default=False,
@@ -260,6 +265,8 @@ class PolicyConfig(_Config):
         if self.anchored_offsets and (not self.object_tokens or self.target != "relative"
                                       or self.scheduler.prediction_type != "sample"):
             raise ValueError("anchored_offsets: needs object_tokens > 0, target 'relative' and scheduler.prediction_type 'sample'")
+        if self.object_orientation and not self.object_tokens:
+            raise ValueError("object_orientation: needs object_tokens > 0")
         return self
 
     @property

@@ -24,6 +24,7 @@ from __future__ import annotations
 import io
 import time
 import zlib
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -177,11 +178,17 @@ def write_strip(path: Path, frames: list[tuple[np.ndarray, str]], title: str) ->
     return Path(path)
 
 
+Watcher = Callable[[EvalEpisode, int, np.ndarray, np.ndarray], None]
+
+
 def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
-                     max_decisions: int | None = None, strip: Path | None = None, through: str = "pose") -> EvalRecord:
+                     max_decisions: int | None = None, strip: Path | None = None, through: str = "pose",
+                     watch: Watcher | None = None) -> EvalRecord:
     """Run one closed-loop episode of ``task`` on ``seed`` with ``models``; see the module docstring.
     strip: when given, the head camera's view at each decision and at the end is drawn there.
-    through: how anchors are carried out (``act``)."""
+    through: how anchors are carried out (``act``). watch: called at each decision, before the
+    prediction is carried out, with ``(episode, decision, points (N, 11), prediction (H, 32))``
+    (diagnostics, e.g. ``benchmarks/grasp_errors.py``; it must not change the episode)."""
     t0 = time.perf_counter()
     frames: list[tuple[np.ndarray, str]] = []
     text = episode_instruction(task, seed, split="val").text
@@ -223,7 +230,10 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
             points, _ = frame_features(frames_dict(obs), 0, cfg.features, s)
         except ValueError:
             return record(False, ep.steps, ep.step_limit, decisions, "no_points")
-        act(ep, models.anchors(points, obs.state, predicted, s), cfg.anchors, through)
+        pred = models.anchors(points, obs.state, predicted, s)
+        if watch is not None:
+            watch(ep, decisions, points, pred)
+        act(ep, pred, cfg.anchors, through)
         moved = float(np.abs(ep.robot.state()[joints] - obs.state[joints]).max())
         trace.append(DecisionTrace(moved, tuple(float(g) for g in ep.gripper_commands()), ep.lift()))
         decisions += 1

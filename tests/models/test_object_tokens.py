@@ -6,7 +6,8 @@ from __future__ import annotations
 import torch
 
 from anchordp3.models.encoders import append_critical_probability
-from anchordp3.models.objects import POSITION_SCALE, TOKEN_FEATURES, cluster_critical_points, object_tokens
+from anchordp3.models.objects import (POSITION_SCALE, TOKEN_FEATURES, cluster_critical_points, object_tokens,
+                                      token_features)
 from anchordp3.models.policy import AnchorDiffusionPolicy
 from anchordp3.schemas.state import ARMS, StateLayout
 from tests.models.test_policy_model import TINY, samples, stats_of
@@ -90,6 +91,55 @@ def test_the_policy_conditions_on_object_tokens_and_learns() -> None:
     policy.compute_loss(batch, generator=torch.Generator().manual_seed(0)).backward()
     assert policy.object_encoder.net[0].weight.grad.abs().sum() > 0
     assert policy.predict(batch, generator=torch.Generator().manual_seed(1)).shape == (4, 8, 32)
+
+
+def turned_scene(yaw: float, shift=(0.0, 0.0)) -> tuple[torch.Tensor, torch.Tensor]:
+    """One critical object, a 10 x 5 cm rectangle (a 20 x 10 grid of points) turned ``yaw`` radians
+    about z and moved by ``shift`` (metres), on 300 table points: points (1, N, 12) and state (1, 32)."""
+    g = torch.Generator().manual_seed(0)
+    u, v = torch.meshgrid((torch.arange(20) + 0.5) / 20 - 0.5, (torch.arange(10) + 0.5) / 10 - 0.5, indexing="ij")
+    local = torch.stack([u.reshape(-1) * 0.10, v.reshape(-1) * 0.05], dim=1)
+    c, s = torch.cos(torch.tensor(yaw)), torch.sin(torch.tensor(yaw))
+    xy = local @ torch.stack([torch.stack([c, s]), torch.stack([-s, c])]) + torch.tensor([-0.15, 0.05]) + torch.tensor(shift)
+    obj = torch.cat([xy, torch.full((200, 1), 0.77)], dim=1)
+    table = torch.rand(300, 3, generator=g) * torch.tensor([0.8, 0.6, 0.0]) - torch.tensor([0.4, 0.3, -0.74])
+    xyz = torch.cat([table, obj])
+    feats = torch.cat([xyz, torch.rand(len(xyz), 8, generator=g)], dim=1)
+    label = torch.cat([torch.zeros(300), torch.ones(200)])
+    return append_critical_probability(feats[None], label[None]), torch.rand(1, 32, generator=g)
+
+
+def test_orientation_tells_an_object_from_its_mirror_image_where_the_spread_cannot() -> None:
+    import math
+
+    plus, state = turned_scene(math.radians(30))
+    minus, _ = turned_scene(math.radians(-30))
+    tp, tm = (object_tokens(p, state, LAYOUT, 1, orientation=True)[0, 0] for p in (plus, minus))
+    assert tp.shape == (token_features(True),) and token_features(True) == TOKEN_FEATURES + 2
+    torch.testing.assert_close(tp[:TOKEN_FEATURES][9:11], tm[:TOKEN_FEATURES][9:11], atol=2e-3, rtol=0)  # x, y spread alike
+    # a 10 x 5 cm rectangle: second moments 1/12 of 0.01 and 0.0025 -> anisotropy 0.6 along its long axis
+    want = 0.6 * torch.tensor([math.cos(math.radians(60)), math.sin(math.radians(60))])
+    assert (tp[-2:] - want).abs().max() < 0.05
+    assert (tm[-2:] - want * torch.tensor([1.0, -1.0])).abs().max() < 0.05
+    # turned half a turn: the same axis; moved: the same orientation
+    half, _ = turned_scene(math.radians(30) + math.pi, shift=(0.1, -0.04))
+    torch.testing.assert_close(object_tokens(half, state, LAYOUT, 1, orientation=True)[0, 0, -2:], tp[-2:], atol=1e-4, rtol=0)
+    # without the option the token is as before
+    torch.testing.assert_close(object_tokens(plus, state, LAYOUT, 1)[0, 0], tp[:TOKEN_FEATURES])
+
+
+def test_the_policy_reads_object_orientation_only_with_tokens() -> None:
+    import pytest
+    from pydantic import ValidationError
+
+    config = TINY.model_copy(update={"object_tokens": 2, "object_orientation": True})
+    policy = AnchorDiffusionPolicy(config)
+    assert policy.object_encoder.net[0].in_features == 2 * token_features(True)
+    batch = samples(4)
+    policy.set_normalizers(stats_of(batch))
+    assert policy.encode_observation(batch).shape == (4, config.cond_dim)
+    with pytest.raises(ValidationError, match="object_orientation"):
+        TINY.model_validate({**TINY.model_dump(), "object_orientation": True})
 
 
 ANCHORED = TINY.model_copy(update={"object_tokens": 2, "anchored_offsets": True})

@@ -152,3 +152,22 @@ def test_a_truncated_model_file_is_refused_in_one_line_naming_it(trained_run, tm
     lines = [line for line in res.output.splitlines() if line.strip()]
     assert len(lines) == 1 and "policy/model.pt" in lines[0] and "not a readable checkpoint" in lines[0]
     assert not has_manifest(tmp_path / "ev")
+
+
+def test_a_watcher_sees_every_decision_before_it_is_carried_out_and_changes_nothing(trained_run):
+    from anchordp3.pipeline.evaluation import eval_run_config, models_folder
+    from anchordp3.stages.evaluate import EvalModels, evaluate_episode
+
+    cfg = eval_run_config(trained_run, models_folder(trained_run, None), EvalOptions())
+    models = EvalModels(trained_run / "models")
+    seen = []
+
+    def watch(ep, decision, points, pred):
+        seen.append((decision, ep.steps, points.shape, pred.shape))
+
+    watched = evaluate_episode("place_mouse", 5000, models, cfg, max_decisions=2, watch=watch)
+    plain = evaluate_episode("place_mouse", 5000, models, cfg, max_decisions=2)
+    assert [d for d, *_ in seen] == list(range(watched.decisions)) and watched.decisions == 2
+    assert seen[0][1] == 0 and seen[1][1] > 0  # called before the first anchor was carried out, then after it
+    assert seen[0][2] == (cfg.features.n_points, 11) and seen[0][3][1] == 32
+    assert (watched.steps, watched.failure, watched.success) == (plain.steps, plain.failure, plain.success)

@@ -212,15 +212,20 @@ class _PlaceOnScale(Task):
         m = pose_matrix(self.world.objects["scale"].pose)
         return m[:3, :3] @ np.asarray(self.scale_model.pad_top) + m[:3, 3]
 
-    def plan(self, expert: Expert) -> None:
+    def grasp_pose(self) -> tuple[np.ndarray, float]:
+        """Where the expert grasps the object as it lies now: the TCP pose ``(4, 4)`` and the finger
+        yaw (radians; for a round object the wrist's home yaw, any yaw grasps it)."""
         obj = self.world.objects[self.noun]
         m = pose_matrix(obj.pose)
-        obj_yaw = entity_yaw(obj.pose)
         if self.model.symmetric_yaw:
             finger = HOME_FINGER_YAW
         else:
-            finger = grasp_yaw(obj_yaw + self.model.grasp_axis, 2)
-        expert.grasp(self.arm, top_down_pose(m[:3, :3] @ np.asarray(self.model.grasp_point) + m[:3, 3], finger), self.noun)
+            finger = grasp_yaw(entity_yaw(obj.pose) + self.model.grasp_axis, 2)
+        return top_down_pose(m[:3, :3] @ np.asarray(self.model.grasp_point) + m[:3, 3], finger), finger
+
+    def plan(self, expert: Expert) -> None:
+        grasp, finger = self.grasp_pose()
+        expert.grasp(self.arm, grasp, self.noun)
         expert.place(self.arm, self._place_pose(expert, finger), self.noun)
         expert.home((self.arm,))
 
