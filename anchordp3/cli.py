@@ -323,6 +323,7 @@ def eval_(
     first_seed: int = typer.Option(None, "--first-seed", min=0, help="First evaluation seed (default: max training seed + 1000)."),
     address: str = typer.Option(None, "--address", help="Ray cluster address (default: a local Ray)."),
     ddim_steps: int = typer.Option(None, "--ddim-steps", min=1, max=100, help="DDIM steps per decision (default: the policy's own, 10 as DP3; 5 costs half and, on the shipped policy, +0.1 cm first-anchor error)."),
+    samples: int = typer.Option(1, "--samples", min=1, max=64, help="Anchor sequences drawn per decision; their medoid is carried out (1: one sample, as the report)."),
 ) -> None:
     """Closed-loop evaluation: success rate per task with 95 % intervals, table, chart, report in <run>/eval (or --out)."""
     from anchordp3.pipeline.evaluation import EXECUTE_THROUGH, EvalOptions, evaluation_summary, run_evaluation
@@ -331,7 +332,7 @@ def eval_(
         raise ValueError(f"--through: expected one of {list(EXECUTE_THROUGH)}, got {through!r}")
     opts = EvalOptions(episodes=episodes, workers=workers, max_decisions=max_decisions, device=device, address=address,
                        first_seed=first_seed, through=through, models=models, out=out, preset=preset, seeds=seeds, ddim_steps=ddim_steps,
-                       tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()) if tasks else None)
+                       samples=samples, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()) if tasks else None)
     records = run_evaluation(run_dir, opts)
     typer.echo(evaluation_summary(records))
     typer.echo(f"report: {(out or Path(run_dir) / 'eval') / 'report.md'}")

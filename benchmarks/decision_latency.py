@@ -54,6 +54,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=2000)
     ap.add_argument("--reps", type=int, default=30)
     ap.add_argument("--ddim-steps", default="", help="also time these DDIM step counts, e.g. 5,3 (fast kernels)")
+    ap.add_argument("--samples", default="", help="also time the medoid of these sample counts per decision, e.g. 4,8")
     args = ap.parse_args()
     torch.set_num_threads(1)
     models_dir = models_folder(None, args.models)
@@ -88,6 +89,11 @@ def main() -> int:
         ms = median_ms(decide, args.reps)
         rows.append([f"segmenter + policy, {steps} DDIM steps", f"{ms:.1f}", "-", "-"])
     models.ddim_steps = None
+    for k in [int(x) for x in args.samples.split(",") if x.strip()]:
+        models.samples = k
+        ms = median_ms(decide, args.reps)
+        rows.append([f"segmenter + policy, medoid of {k} samples", f"{ms:.1f}", "-", "-"])
+    models.samples = 1
     full = fast["render"] + fast["features"] + fast["segmenter + policy"]
     rows.append(["full decision (render + features + models)", f"{full:.1f}", "-", "-"])
     print(text_table(["one thread, median ms", "fast kernels", "reference kernels", "speed-up"], rows))

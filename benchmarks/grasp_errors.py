@@ -98,12 +98,13 @@ def main() -> int:
     ap.add_argument("--run-dir", type=Path, default=None)
     ap.add_argument("--tasks", default="place_mouse")
     ap.add_argument("--seeds", default="2000-2019")
+    ap.add_argument("--samples", type=int, default=1, help="anchor sequences per decision, their medoid carried out")
     args = ap.parse_args()
     torch.set_num_threads(1)
     opts = EvalOptions(models=args.models, tasks=tuple(args.tasks.split(",")))
     models_dir = models_folder(args.run_dir, args.models)
     cfg = eval_run_config(args.run_dir, models_dir, opts)
-    models = EvalModels(models_dir)
+    models = EvalModels(models_dir, samples=args.samples)
     rows, counts, n_ok, n = [], {c: 0 for c in CAUSES}, 0, 0
     for task in opts.tasks:
         for seed in parse_seeds(args.seeds, "--seeds"):

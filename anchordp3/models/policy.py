@@ -54,6 +54,14 @@ def gripper_offsets(points: torch.Tensor, state: torch.Tensor, layout: StateLayo
     return torch.cat([(points[..., :3] - state[:, None, layout.ee_xyz(arm)]) * GRIPPER_OFFSET_SCALE for arm in ARMS], dim=-1)
 
 
+def medoid(samples: torch.Tensor) -> torch.Tensor:
+    """``samples (B, K, H, D)`` -> ``(B, H, D)``: per row, the sample whose summed Euclidean distance
+    to the row's other samples (all H x D elements, normalised units) is least."""
+    flat = samples.flatten(2)
+    pick = torch.cdist(flat, flat).sum(-1).argmin(-1)  # (B,)
+    return samples[torch.arange(len(samples), device=samples.device), pick]
+
+
 class AnchorDiffusionPolicy(nn.Module):
     """Task-conditioned encoders + conditional U-Net diffusion over anchors.
 
@@ -172,20 +180,26 @@ class AnchorDiffusionPolicy(nn.Module):
 
     @torch.no_grad()
     def predict(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None,
-                steps: int | None = None) -> torch.Tensor:
+                steps: int | None = None, samples: int = 1) -> torch.Tensor:
         """DDIM sampling of the next anchors. obs: points (B, N, C), state (B, action_dim),
         task_id (B,) -> anchors (B, horizon, action_dim) float32 in data units (unnormalised).
 
         The initial noise comes from ``generator`` (CPU) when given; the DDIM steps are
         deterministic, so the same generator seed gives the same anchors. ``steps``: DDIM steps
-        (None: the config's ``scheduler.num_inference_steps``). Call on the EMA copy
-        (``ExponentialMovingAverage.averaged_model``) in evaluation."""
+        (None: the config's ``scheduler.num_inference_steps``). ``samples``: anchor sequences
+        drawn per observation (K, one encoder pass); with K > 1 the one returned is their medoid
+        (``medoid``), a consensus that drops a stray sample yet stays one of the samples. Call on
+        the EMA copy (``ExponentialMovingAverage.averaged_model``) in evaluation."""
+        if samples < 1:
+            raise ValueError(f"samples: {samples}, need at least 1")
         scheduler = self.noise_scheduler
         with autocast(self.device, self.mixed_precision):
             cond, tokens = self._condition(obs)
         shift = self.anchored_shift(cond, tokens)
         b = cond.shape[0]
-        x = torch.randn((b, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
+        if samples > 1:
+            cond, shift = cond.repeat_interleave(samples, 0), shift.repeat_interleave(samples, 0)
+        x = torch.randn((b * samples, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
         steps = self.config.scheduler.num_inference_steps if steps is None else steps
         if not 1 <= steps <= self.config.scheduler.num_train_timesteps:
             raise ValueError(f"ddim steps: {steps} outside 1..{self.config.scheduler.num_train_timesteps}")
@@ -194,6 +208,8 @@ class AnchorDiffusionPolicy(nn.Module):
             with autocast(self.device, self.mixed_precision):
                 out = self.unet(x, t, cond)
             x = scheduler.step(out.float() + shift, t, x).prev_sample
+        if samples > 1:
+            x = medoid(x.view(b, samples, *x.shape[1:]))
         return self.from_target(x, torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32))
 
     def to_target(self, anchors: torch.Tensor, state: torch.Tensor) -> torch.Tensor:

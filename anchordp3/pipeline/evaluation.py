@@ -45,6 +45,7 @@ EXECUTE_THROUGH = ("pose", "joints")  # stages.evaluate.EXECUTE_THROUGH, without
 
 PRETRAINED = "pretrained"
 PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"  # the shipped models, inside the package
+PRETRAINED_SAMPLES = 8  # how the shipped policy was measured: the medoid of 8 anchor sequences per decision (configs/recipe.yaml eval.samples)
 RUN_CONFIG_FILE = "run_config.yaml"  # beside shipped models: the data config they were trained on
 
 
@@ -62,7 +63,8 @@ class EvalOptions:
     evaluate, a spec like ``2000-2049`` or ``train`` for the training seeds (None: ``episodes``
     unseen seeds from ``first_seed``); out: the evaluation folder (None: ``<run>/eval``); preset:
     the randomization preset of the evaluation scenes (None: the training data's); ddim_steps: DDIM
-    steps per decision (None: the policy's own, 10 as DP3)."""
+    steps per decision (None: the policy's own, 10 as DP3); samples: anchor sequences drawn per
+    decision, their medoid carried out (1: one sample, as DP3 and the report)."""
 
     episodes: int = 10
     workers: int = 2
@@ -79,6 +81,7 @@ class EvalOptions:
     out: Path | None = None
     preset: str | None = None
     ddim_steps: int | None = None
+    samples: int = 1
 
 
 def models_folder(run_dir: Path | None, models: str | None) -> Path:
@@ -148,14 +151,17 @@ def actor_device(device: str, workers: int) -> tuple[str, float]:
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """The 95 % Wilson score interval of a success rate (``(0, 1)`` when ``n == 0``)."""
+    """The 95 % Wilson score interval of a success rate (``(0, 1)`` when ``n == 0``). It holds the
+    rate itself: at 0 or n successes the bound at the rate is exactly 0 or 1, not a rounding off."""
     if n == 0:
         return 0.0, 1.0
     p = successes / n
     den = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / den
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return max(0.0, centre - half), min(1.0, centre + half)
+    low = 0.0 if successes == 0 else min(p, max(0.0, centre - half))
+    high = 1.0 if successes == n else max(p, min(1.0, centre + half))
+    return low, high
 
 
 def episode_item(task: str, seed: int) -> str:
@@ -166,7 +172,8 @@ def episode_item(task: str, seed: int) -> str:
 class EvalWorker:
     """Loads the models once, then runs episodes one at a time."""
 
-    def __init__(self, models_dir: str, out_dir: str, cfg_json: str, device: str, ddim_steps: int | None = None):
+    def __init__(self, models_dir: str, out_dir: str, cfg_json: str, device: str, ddim_steps: int | None = None,
+                 samples: int = 1):
         import torch
 
         from anchordp3.stages.evaluate import EvalModels
@@ -174,7 +181,7 @@ class EvalWorker:
         torch.set_num_threads(1)
         self.out = Path(out_dir)
         self.cfg = RunConfig.model_validate_json(cfg_json)
-        self.models = EvalModels(Path(models_dir), device, ddim_steps)
+        self.models = EvalModels(Path(models_dir), device, ddim_steps, samples)
 
     def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None,
             through: str) -> tuple[dict, tuple[WorkerRecord, ...]]:
@@ -210,6 +217,8 @@ def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerp
             "max_decisions": opts.max_decisions, "through": opts.through, "plan": cfg.anchors.plan, "dense": cfg.anchors.dense.model_dump(mode="json")}
     if opts.ddim_steps is not None:  # only when set: evaluations with the policy's own steps keep their fingerprint
         part["ddim_steps"] = opts.ddim_steps
+    if opts.samples != 1:
+        part["samples"] = opts.samples
     return Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([PROTOCOL_MODULE]),  # read, not imported: the driver stays free of the simulator
                        config_hash=config_hash(part), upstream=upstream)
 
@@ -247,7 +256,7 @@ def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts
         n = max(1, min(opts.workers, len(pending)))
         device, gpus = actor_device(opts.device, n)
         workers = [EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(
-            str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps) for _ in range(n)]
+            str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps, opts.samples) for _ in range(n)]
         strip_seeds = set(seeds[:opts.strips])
 
         def submit(w, ep):

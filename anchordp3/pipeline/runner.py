@@ -584,10 +584,13 @@ class _TokenAuthNotice(logging.Filter):
 
 
 def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph = DATA_GRAPH) -> None:
-    """Connect to Ray: the running instance if any, a cluster at ``address``, or a new local one
-    with enough logical CPUs for every pool (CPU counts are reservations, not a speed limit)."""
+    """Connect to Ray: the running instance if any, a cluster at ``address`` (else at ``RAY_ADDRESS``,
+    as inside a Ray Job), or a new local one with enough logical CPUs for every pool (CPU counts are
+    reservations, not a speed limit). Without an address a run never joins a cluster that happens to
+    run on the machine (Ray's own default would, through /tmp/ray/ray_current_cluster)."""
     if ray.is_initialized():
         return
+    address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
         ray.init(address=address, logging_level="WARNING", log_to_driver=False)
         return
@@ -598,7 +601,7 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph =
     # A new local Ray enables token authentication by default and warns that it did: nothing a
     # user needs to act on, so that one message is dropped. It listens on loopback only.
     logging.getLogger("ray._private.authentication.authentication_token_setup").addFilter(_TokenAuthNotice())
-    ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(need)), include_dashboard=False, logging_level="WARNING",
+    ray.init(address="local", num_cpus=max(os.cpu_count() or 1, math.ceil(need)), include_dashboard=False, logging_level="WARNING",
              log_to_driver=False, object_store_memory=100 * 1024**2, _node_ip_address="127.0.0.1")
 
 

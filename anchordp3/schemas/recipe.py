@@ -23,6 +23,7 @@ class RecipeEvalConfig(BaseModel):
     workers: int = Field(default=2, ge=1, description="Ray actors running episodes in parallel.")
     max_decisions: int | None = Field(default=None, ge=1, description="Cap on policy calls per episode (None: only the task's step limit).")
     through: Literal["pose", "joints"] = Field(default="pose", description="Carry out an anchor through its end-effector poses (IK) or its joint angles (the report).")
+    samples: int = Field(default=1, ge=1, le=64, description="Anchor sequences drawn per decision, their medoid carried out (1: one sample, as the report).")
 
 
 class RecipeConfig(BaseModel):

@@ -14,7 +14,7 @@ from anchordp3.models.optim import make_lr_schedule, make_optimizer
 from anchordp3.models.encoders import soft_keypoints
 from anchordp3.models.kernels import reference_kernels
 from anchordp3.models.unet1d import ConditionalUnet1D, SequenceConv1d
-from anchordp3.models.policy import GRIPPER_OFFSET_SCALE, AnchorDiffusionPolicy, gripper_offsets
+from anchordp3.models.policy import GRIPPER_OFFSET_SCALE, AnchorDiffusionPolicy, gripper_offsets, medoid
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import (
     OptimizerConfig,
@@ -103,6 +103,33 @@ def test_fewer_ddim_steps_can_be_asked_for_at_decision_time() -> None:
     assert not torch.equal(three, policy.predict(obs, generator=torch.Generator().manual_seed(0)))  # the config's 10
     with pytest.raises(ValueError, match="ddim steps"):
         policy.predict(obs, steps=0)
+
+
+def test_the_medoid_is_the_sample_nearest_the_others_and_ignores_a_stray_one() -> None:
+    base = torch.zeros(2, 1, 1)
+    rows = torch.stack([torch.cat([base + 0.0, base + 0.1, base + 0.3, base + 9.0, base + 0.2]),  # the stray pulls the mean to 1.92
+                        torch.cat([base - 5.0, base + 1.0, base + 1.2, base + 1.1, base + 1.3])])  # (2 rows, 5 samples, 1, 1)
+    torch.testing.assert_close(medoid(rows), torch.tensor([[[0.2]], [[1.1]]]))
+
+
+def test_several_samples_per_decision_return_the_medoid_of_the_single_samples_with_the_same_noise() -> None:
+    policy = make_policy().eval()
+    batch = samples(2)
+    policy.set_normalizers(stats_of(batch))
+    obs = {k: batch[k] for k in ("points", "state", "task_id")}
+    one = {k: v[1:] for k, v in obs.items()}
+    four = {k: v.repeat_interleave(4, 0) for k, v in one.items()}
+    singles = policy.predict(four, generator=torch.Generator().manual_seed(3))  # one per noise draw, (4, 8, 32)
+    picked = policy.predict(one, generator=torch.Generator().manual_seed(3), samples=4)
+    assert picked.shape == (1, 8, 32)
+    assert any(torch.allclose(picked[0], s, atol=1e-5) for s in singles)
+    assert not all(torch.allclose(singles[0], s, atol=1e-5) for s in singles[1:])  # the samples do differ
+    both = policy.predict(obs, generator=torch.Generator().manual_seed(3), samples=4)
+    assert both.shape == (2, 8, 32)
+    first = policy.predict(obs, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(first, policy.predict(obs, generator=torch.Generator().manual_seed(3), samples=1))
+    with pytest.raises(ValueError, match="samples"):
+        policy.predict(obs, samples=0)
 
 
 def test_soft_keypoints_are_weighted_means_of_the_cloud() -> None:

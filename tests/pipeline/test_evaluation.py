@@ -51,6 +51,14 @@ def test_wilson_interval():
     assert lo < 0.5 < hi and abs((lo + hi) / 2 - 0.5) < 1e-9
 
 
+def test_the_wilson_interval_always_holds_the_rate_so_error_bars_are_never_negative():
+    for n in range(1, 201):
+        for k in range(n + 1):
+            lo, hi = wilson_interval(k, n)
+            assert 0.0 <= lo <= k / n <= hi <= 1.0, (k, n)
+    assert wilson_interval(10, 10)[1] == 1.0  # 0.9999999999999999 before: a negative error bar stopped a recipe
+
+
 def test_eval_seeds_disjoint_from_training():
     cfg = RunConfig.model_validate(DATA)
     seeds = eval_seeds(cfg, 5)
@@ -171,3 +179,18 @@ def test_a_watcher_sees_every_decision_before_it_is_carried_out_and_changes_noth
     assert seen[0][1] == 0 and seen[1][1] > 0  # called before the first anchor was carried out, then after it
     assert seen[0][2] == (cfg.features.n_points, 11) and seen[0][3][1] == 32
     assert (watched.steps, watched.failure, watched.success) == (plain.steps, plain.failure, plain.success)
+
+
+def test_a_consensus_of_samples_is_a_setting_of_the_evaluation_that_keeps_one_sample_s_records(trained_run):
+    from anchordp3.pipeline.evaluation import _fingerprint, eval_run_config, models_folder
+    from anchordp3.stages.evaluate import EvalModels
+
+    models_dir = models_folder(trained_run, None)
+    cfg = eval_run_config(trained_run, models_dir, EvalOptions())
+    one = _fingerprint(models_dir, cfg, EvalOptions())
+    assert _fingerprint(models_dir, cfg, EvalOptions(samples=1)) == one  # evaluations made before the option keep theirs
+    assert _fingerprint(models_dir, cfg, EvalOptions(samples=8)) != one
+    g = torch.Generator().manual_seed(0)
+    points, state = torch.rand(256, 11, generator=g).numpy(), torch.rand(32, generator=g).numpy()
+    picked = EvalModels(models_dir, samples=4).anchors(points, state, 0, noise_seed=3)
+    assert picked.shape == EvalModels(models_dir).anchors(points, state, 0, noise_seed=3).shape
