@@ -17,7 +17,6 @@ from anchordp3.pipeline.evaluation import (
     EVAL_DIR,
     PRETRAINED,
     PRETRAINED_DIR,
-    PRETRAINED_SAMPLES,
     EvalOptions,
     evaluation_summary,
     run_evaluation,
@@ -93,7 +92,7 @@ def run_demo(run_dir: Path, cfg: RunConfig, opts: DemoOptions = DemoOptions()) -
     if opts.pretrained_episodes and shipped_models_present():
         log.info("\n== and the shipped policy (`--models pretrained`, made by configs/recipe.yaml) on the same kind of unseen seeds")
         shipped = EvalOptions(models=PRETRAINED, episodes=opts.pretrained_episodes, workers=opts.workers, address=opts.address,
-                              max_decisions=opts.max_decisions, out=run_dir / PRETRAINED_EVAL_DIR, samples=PRETRAINED_SAMPLES)
+                              max_decisions=opts.max_decisions, out=run_dir / PRETRAINED_EVAL_DIR)
         log.info("\n" + evaluation_summary(run_evaluation(None, shipped)))
         log.info(f"Report: {run_dir / PRETRAINED_EVAL_DIR / 'report.md'}")
     log.info(f"Inspect the run: anchordp3 status {run_dir} | anchordp3 inspect {run_dir} render | anchordp3 show {run_dir} --frame 3")

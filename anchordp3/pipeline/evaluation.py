@@ -45,7 +45,6 @@ EXECUTE_THROUGH = ("pose", "joints")  # stages.evaluate.EXECUTE_THROUGH, without
 
 PRETRAINED = "pretrained"
 PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"  # the shipped models, inside the package
-PRETRAINED_SAMPLES = 8  # how the shipped policy was measured: the medoid of 8 anchor sequences per decision (configs/recipe.yaml eval.samples)
 RUN_CONFIG_FILE = "run_config.yaml"  # beside shipped models: the data config they were trained on
 
 
