@@ -1,0 +1,75 @@
+"""What the cluster tests share: a tiny run config (3 logical CPUs of pools, so that every pool
+still fits once a 2-CPU worker node is gone) and helpers to start and stop processes by their
+own ids."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent  # the virtualenv's bin: anchordp3, ray
+POOLS = {"rollout": {"workers": 2, "cpus": 0.4}, "anchors": {"workers": 1, "cpus": 0.2}, "render": {"workers": 2, "cpus": 0.5},
+         "features": {"workers": 2, "cpus": 0.4}, "write": {"workers": 1, "cpus": 0.2}}
+TINY = {
+    "name": "cluster", "tasks": ["place_mouse", "place_bell"], "seeds": "0-3", "preset": "randomized",
+    "cameras": {"width": 64, "height": 48}, "features": {"n_points": 256},
+    "anchors": {"dagger": {"fraction": 0.2}}, "write": {"episodes_per_shard": 2, "validation_fraction": 0.25},
+    "execution": {"pools": POOLS},
+}
+
+
+def cli(*args: str) -> list[str]:
+    """The ``anchordp3`` command line, in this interpreter."""
+    return [sys.executable, "-m", "anchordp3.cli", *args]
+
+
+def short_tmp(prefix: str) -> Path:
+    """A fresh folder with a short path under /tmp (Ray's and munge's Unix sockets live in it,
+    and a socket path is at most 107 bytes), searchable by every user."""
+    d = Path(tempfile.mkdtemp(prefix=prefix, dir="/tmp"))
+    d.chmod(0o755)
+    return d
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def kill_group(proc: subprocess.Popen, sig: int = signal.SIGKILL) -> None:
+    """Signal the process group ``proc`` leads (started with ``start_new_session``), if it is up."""
+    try:
+        os.killpg(proc.pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+def pids_using(marker: str) -> list[int]:
+    """The processes whose command line names ``marker`` (a folder this test made): what a
+    daemon left behind, to stop by id."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit() and int(d.name) != os.getpid():
+            try:
+                if marker in (d / "cmdline").read_bytes().decode(errors="replace"):
+                    out.append(int(d.name))
+            except OSError:
+                continue
+    return out
+
+
+def kill_pids(pids: list[int]) -> None:
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
