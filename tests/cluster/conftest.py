@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from anchordp3.pipeline.report import dataset_content_hash
-from tests.cluster.helpers import TINY, cli
+from tests.cluster.helpers import LOOPBACK_ENV, TINY, cli
 
 
 @pytest.fixture(scope="session")
@@ -24,5 +24,5 @@ def config_file(tmp_path_factory) -> Path:
 def local_hash(config_file, tmp_path_factory) -> str:
     """The dataset hash of the same config run on one local Ray (the CLI, its own process)."""
     run = tmp_path_factory.mktemp("local")
-    subprocess.run(cli("-q", "run", str(config_file), "--run-dir", str(run)), check=True, timeout=900)
+    subprocess.run(cli("-q", "run", str(config_file), "--run-dir", str(run)), check=True, timeout=900, env=LOOPBACK_ENV)
     return dataset_content_hash(run)

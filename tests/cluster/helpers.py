@@ -14,6 +14,10 @@ from pathlib import Path
 
 
 REPO = Path(__file__).resolve().parents[2]
+# Ray turns a node address of 127.0.0.1 into the machine's routable one (and its servers then
+# listen on every address) unless it believes it runs on a one-machine platform: this makes a
+# Ray started by the process (``ray start --head``, a local ``ray.init``) bind 127.0.0.1.
+LOOPBACK_ENV = {**os.environ, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
 BIN = Path(sys.executable).parent  # the virtualenv's bin: anchordp3, ray
 POOLS = {"rollout": {"workers": 2, "cpus": 0.4}, "anchors": {"workers": 1, "cpus": 0.2}, "render": {"workers": 2, "cpus": 0.5},
          "features": {"workers": 2, "cpus": 0.4}, "write": {"workers": 1, "cpus": 0.2}}

@@ -13,7 +13,7 @@ import pytest
 from anchordp3.pipeline.report import dataset_content_hash
 from anchordp3.pipeline.store import count_records
 from anchordp3.pipeline.work import DATA_STAGES, stage_dir
-from tests.cluster.helpers import cli, short_tmp
+from tests.cluster.helpers import LOOPBACK_ENV, cli, short_tmp
 
 pytestmark = pytest.mark.cluster
 
@@ -37,7 +37,7 @@ def small_disk():
 
 def test_a_full_disk_stops_the_run_in_one_line_and_it_resumes_once_space_is_freed(small_disk, config_file, local_hash):
     run = small_disk / "run"
-    res = subprocess.run(cli("-q", "run", str(config_file), "--run-dir", str(run)), capture_output=True, text=True, timeout=900)
+    res = subprocess.run(cli("-q", "run", str(config_file), "--run-dir", str(run)), capture_output=True, text=True, timeout=900, env=LOOPBACK_ENV)
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert res.returncode == 2, res.stderr[-3000:]
     assert len(lines) == 1 and lines[0].startswith("error: ") and str(small_disk) in lines[0], res.stderr[-3000:]
@@ -47,7 +47,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_it_resumes_once_space_is_free
     assert verify.returncode == 0, verify.stdout + verify.stderr  # every output recorded done is whole
 
     subprocess.run(["mount", "-o", f"remount,size={FREED}", str(small_disk)], check=True)
-    again = subprocess.run(cli("-q", "run", str(config_file), "--run-dir", str(run)), capture_output=True, text=True, timeout=900)
+    again = subprocess.run(cli("-q", "run", str(config_file), "--run-dir", str(run)), capture_output=True, text=True, timeout=900, env=LOOPBACK_ENV)
     assert again.returncode == 0, again.stderr[-3000:]
     assert sum(count_records(stage_dir(run, s)) for s in DATA_STAGES) >= recorded
     assert dataset_content_hash(run) == local_hash

@@ -16,7 +16,7 @@ import pytest
 from anchordp3.pipeline.report import dataset_content_hash
 from anchordp3.pipeline.store import count_records, read_manifest
 from anchordp3.pipeline.work import DATA_STAGES, stage_dir
-from tests.cluster.helpers import BIN, REPO, free_port, kill_pids, pids_using, short_tmp
+from tests.cluster.helpers import BIN, LOOPBACK_ENV, REPO, free_port, kill_pids, pids_using, short_tmp
 
 pytestmark = pytest.mark.cluster
 
@@ -27,7 +27,7 @@ def head():
     folder of its own; yields the dashboard's address. Stopped by its processes' ids (``ray stop``
     would stop every Ray on the machine)."""
     d = short_tmp("adp3-jobs-")
-    env = {**os.environ, "PATH": f"{BIN}:{os.environ['PATH']}"}
+    env = {**LOOPBACK_ENV, "PATH": f"{BIN}:{os.environ['PATH']}"}
     dash = free_port()
     cmd = [str(BIN / "ray"), "start", "--head", "--node-ip-address=127.0.0.1", f"--port={free_port()}",
            "--include-dashboard=true", "--dashboard-host=127.0.0.1", f"--dashboard-port={dash}",

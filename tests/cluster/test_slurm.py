@@ -141,7 +141,7 @@ def _batch(slurm: LocalSlurm, name: str, config: Path, run_dir: Path) -> tuple[i
     """``sbatch --wait examples/slurm_batch.sh`` on one node: its exit code and output."""
     out = slurm.d / f"{name}-{time.monotonic_ns()}.out"
     export = (f"ALL,NAME={name},CONFIG={config},RUN_DIR={run_dir},REPO={REPO},HEAD_IP=127.0.0.1,RAY_CPUS=3,"
-              f"RAY_TMPDIR={slurm.d}/ray")
+              f"RAY_TMPDIR={slurm.d}/ray,RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0")
     res = slurm.run("sbatch", "--wait", "--nodes=1", "--time=30", f"--output={out}", f"--export={export}",
                     str(REPO / "examples" / "slurm_batch.sh"), timeout=1500, cwd=str(slurm.d))
     text = out.read_text() if out.exists() else ""
