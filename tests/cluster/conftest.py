@@ -9,8 +9,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from anchordp3.pipeline.report import dataset_content_hash
-from tests.cluster.helpers import LOOPBACK_ENV, TINY, cli
+from tests.cluster.helpers import LOOPBACK_ENV, TINY, cli, loopback_only
+
+loopback_only()  # before anything imports Ray's constants
+
+from anchordp3.pipeline.report import dataset_content_hash  # noqa: E402
 
 
 @pytest.fixture(scope="session")

@@ -17,7 +17,19 @@ REPO = Path(__file__).resolve().parents[2]
 # Ray turns a node address of 127.0.0.1 into the machine's routable one (and its servers then
 # listen on every address) unless it believes it runs on a one-machine platform: this makes a
 # Ray started by the process (``ray start --head``, a local ``ray.init``) bind 127.0.0.1.
-LOOPBACK_ENV = {**os.environ, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+# The same holds for an address given to ``ray.init``: 127.0.0.1:PORT would be dialled at the
+# routable address, where a loopback-only cluster does not listen. ``loopback_only`` sets it for
+# this process (before Ray is imported) and every process it starts.
+LOOPBACK = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+LOOPBACK_ENV = {**os.environ, **LOOPBACK}
+
+
+def loopback_only() -> None:
+    """Make this process's Ray keep 127.0.0.1 as it is (see ``LOOPBACK``)."""
+    os.environ.update(LOOPBACK)
+    import ray._private.ray_constants as constants
+
+    constants.ENABLE_RAY_CLUSTER = False  # read at import: in case Ray came in first
 BIN = Path(sys.executable).parent  # the virtualenv's bin: anchordp3, ray
 POOLS = {"rollout": {"workers": 2, "cpus": 0.4}, "anchors": {"workers": 1, "cpus": 0.2}, "render": {"workers": 2, "cpus": 0.5},
          "features": {"workers": 2, "cpus": 0.4}, "write": {"workers": 1, "cpus": 0.2}}
@@ -58,17 +70,23 @@ def kill_group(proc: subprocess.Popen, sig: int = signal.SIGKILL) -> None:
 
 
 def pids_using(marker: str) -> list[int]:
-    """The processes whose command line names ``marker`` (a folder this test made): what a
-    daemon left behind, to stop by id."""
-    out = []
+    """The processes whose command line names ``marker`` (a folder this test made), and their
+    descendants (Ray's agents rename themselves): what daemons left behind, to stop by id."""
+    found, parent = set(), {}
     for d in Path("/proc").iterdir():
         if d.name.isdigit() and int(d.name) != os.getpid():
             try:
                 if marker in (d / "cmdline").read_bytes().decode(errors="replace"):
-                    out.append(int(d.name))
-            except OSError:
+                    found.add(int(d.name))
+                parent[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
                 continue
-    return out
+    grew = True
+    while grew:
+        more = {pid for pid, pp in parent.items() if pp in found} - found
+        found |= more
+        grew = bool(more)
+    return sorted(found)
 
 
 def kill_pids(pids: list[int]) -> None:
