@@ -13,6 +13,8 @@
 # - The working directory (this repository) is uploaded with the job; its configs/ is what the
 #   entrypoint reads. Large local folders are excluded from the upload.
 # - Submitting the same NAME again resumes the run: done items are kept, the rest is redone.
+# - Ray 2.5x clusters use token authentication: give this shell the cluster's token too
+#   (RAY_AUTH_MODE=token and RAY_AUTH_TOKEN, or RAY_AUTH_TOKEN_PATH).
 set -euo pipefail
 
 NAME=${1:?usage: ray_job_submit.sh NAME [CONFIG]}

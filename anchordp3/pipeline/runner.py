@@ -583,7 +583,9 @@ class Runner:
             gpus = pc.gpus if pc.gpus is not None else (1.0 / n if s == "render" and gpus_available else 0.0)
             if gpus > 0 and not gpus_available:
                 raise ValueError(f"execution.pools.{s}.gpus: {gpus} GPUs asked for, but the Ray cluster has none")
-            pools[s] = [StageWorker.options(num_cpus=pc.cpus, num_gpus=gpus, max_restarts=-1, max_task_retries=0)
+            # SPREAD: a pool's actors go to different nodes where they fit (on one node: no change)
+            options = dict(num_cpus=pc.cpus, num_gpus=gpus, max_restarts=-1, max_task_retries=0, scheduling_strategy="SPREAD")
+            pools[s] = [StageWorker.options(**options)
                         .remote(self.graph[s], str(self.run_dir.resolve()), self.cfg.model_dump_json(), self.opts.faults) for _ in range(n)]
         return pools
 

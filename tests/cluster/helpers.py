@@ -41,6 +41,17 @@ TINY = {
 }
 
 
+def own_token(d: Path) -> dict[str, str]:
+    """Ray's token authentication (on by default since 2.5x) with a token of this test's own, in
+    ``d``: the environment a head, its clients and its jobs share."""
+    import secrets
+
+    path = d / "auth_token"
+    path.write_text(secrets.token_hex(32))
+    path.chmod(0o600)
+    return {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN_PATH": str(path)}
+
+
 def cli(*args: str) -> list[str]:
     """The ``anchordp3`` command line, in this interpreter."""
     return [sys.executable, "-m", "anchordp3.cli", *args]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 import time
 
 import pytest
@@ -16,7 +17,7 @@ import pytest
 from anchordp3.pipeline.report import dataset_content_hash
 from anchordp3.pipeline.store import count_records, read_manifest
 from anchordp3.pipeline.work import DATA_STAGES, stage_dir
-from tests.cluster.helpers import BIN, LOOPBACK_ENV, REPO, free_port, kill_pids, pids_using, short_tmp
+from tests.cluster.helpers import BIN, LOOPBACK_ENV, REPO, free_port, kill_pids, own_token, pids_using, short_tmp
 
 pytestmark = pytest.mark.cluster
 
@@ -27,7 +28,7 @@ def head():
     folder of its own; yields the dashboard's address. Stopped by its processes' ids (``ray stop``
     would stop every Ray on the machine)."""
     d = short_tmp("adp3-jobs-")
-    env = {**LOOPBACK_ENV, "PATH": f"{BIN}:{os.environ['PATH']}"}
+    env = {**LOOPBACK_ENV, **own_token(d), "PATH": f"{BIN}:{os.environ['PATH']}"}
     dash = free_port()
     cmd = [str(BIN / "ray"), "start", "--head", "--node-ip-address=127.0.0.1", f"--port={free_port()}",
            "--include-dashboard=true", "--dashboard-host=127.0.0.1", f"--dashboard-port={dash}",
@@ -51,14 +52,22 @@ def _records(run) -> int:
     return sum(count_records(stage_dir(run, s)) for s in DATA_STAGES if stage_dir(run, s).exists())
 
 
-def _stop_running_job(address: str, name: str) -> None:
-    from ray.job_submission import JobStatus, JobSubmissionClient
+STOP = """
+import sys
+from ray.job_submission import JobStatus, JobSubmissionClient
+client = JobSubmissionClient(sys.argv[1])
+running = [j.submission_id for j in client.list_jobs()
+           if (j.submission_id or "").startswith(sys.argv[2]) and j.status == JobStatus.RUNNING]
+assert len(running) == 1, running
+client.stop_job(running[0])
+"""
 
-    client = JobSubmissionClient(address)
-    running = [j for j in client.list_jobs() if (j.submission_id or "").startswith(f"anchordp3-{name}-")
-               and j.status == JobStatus.RUNNING]
-    assert len(running) == 1, running
-    client.stop_job(running[0].submission_id)
+
+def _stop_running_job(head, name: str) -> None:
+    """Stop the running job of ``name`` (its driver is killed), as ``ray job stop`` does; in a
+    process with the head's environment (its token)."""
+    address, env = head
+    subprocess.run([sys.executable, "-c", STOP, address, f"anchordp3-{name}-"], env=env, check=True, timeout=120)
 
 
 def test_a_job_stopped_mid_run_then_submitted_again_resumes_to_the_local_bytes(head, config_file, local_hash, tmp_path):
@@ -68,7 +77,7 @@ def test_a_job_stopped_mid_run_then_submitted_again_resumes_to_the_local_bytes(h
     while _records(run) < 6 and first.poll() is None and time.monotonic() < deadline:
         time.sleep(0.5)
     assert first.poll() is None, f"the job ended before it could be stopped:\n{first.stdout.read()[-3000:]}"
-    _stop_running_job(head[0], "jobs-tiny")
+    _stop_running_job(head, "jobs-tiny")
     first.wait(timeout=120)
     done_before = _records(run)
     assert done_before >= 6 and not read_manifest(stage_dir(run, "write")).complete

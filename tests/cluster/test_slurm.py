@@ -21,10 +21,11 @@ import pytest
 from anchordp3.pipeline.report import dataset_content_hash
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.work import DATA_STAGES, stage_dir
-from tests.cluster.helpers import REPO, kill_pids, pids_using, short_tmp
+from tests.cluster.helpers import REPO, kill_pids, own_token, pids_using, short_tmp
 
 pytestmark = pytest.mark.cluster
 
+NS_ADDRESS = "10.255.255.1"
 SLURM_CONF = """\
 ClusterName=anchordp3test
 SlurmctldHost={host}(127.0.0.1)
@@ -77,12 +78,16 @@ class LocalSlurm:
 
     def __init__(self, d: Path):
         self.d, self.procs = d, []
+        self.token = own_token(d)  # the job's Ray: token authentication with a token of its own
         self.env = {**os.environ, "SLURM_CONF": str(d / "slurm.conf")}
         (d / "state").mkdir()
         (d / "spool").mkdir()
         host = subprocess.run(["hostname", "-s"], capture_output=True, text=True, check=True).stdout.strip()
         (d / "slurm.conf").write_text(SLURM_CONF.format(host=host, d=d, cpus=os.cpu_count() or 1))
-        self.ns = subprocess.Popen(["unshare", "--net", "sh", "-c", "ip link set lo up && exec sleep infinity"],
+        # Slurm finds no address to listen on where the only one is 127.0.0.1 (getaddrinfo with
+        # AI_ADDRCONFIG): a second one on the namespace's loopback device, reachable from nowhere else
+        self.ns = subprocess.Popen(["unshare", "--net", "sh", "-c",
+                                    f"ip link set lo up && ip addr add {NS_ADDRESS}/32 dev lo && exec sleep infinity"],
                                    start_new_session=True)
 
     def cmd(self, *args: str) -> list[str]:
@@ -99,11 +104,13 @@ class LocalSlurm:
                                                stderr=subprocess.STDOUT, start_new_session=True))
             time.sleep(1.0)
         for _ in range(60):
-            state = self.run("sinfo", "-h", "-o", "%T").stdout.strip()
+            if any(p.poll() is not None for p in self.procs):
+                break  # a daemon died: its log says why
+            state = self.run("sinfo", "-h", "-o", "%T", timeout=20).stdout.strip()
             if state == "idle":
                 return
             time.sleep(1)
-        raise RuntimeError(f"the Slurm node did not come up (sinfo: {state!r}); see {d}/slurmctld.log, {d}/slurmd.log")
+        raise RuntimeError(f"the Slurm node did not come up; see {d}/slurmctld.log, {d}/slurmd.log")
 
     def run(self, *args: str, timeout: float = 60, **kw) -> subprocess.CompletedProcess:
         return subprocess.run(self.cmd(*args), env={**self.env, **kw.pop("env", {})}, capture_output=True, text=True,
@@ -140,8 +147,9 @@ def slurm():
 def _batch(slurm: LocalSlurm, name: str, config: Path, run_dir: Path) -> tuple[int, str]:
     """``sbatch --wait examples/slurm_batch.sh`` on one node: its exit code and output."""
     out = slurm.d / f"{name}-{time.monotonic_ns()}.out"
+    token = ",".join(f"{k}={v}" for k, v in slurm.token.items())
     export = (f"ALL,NAME={name},CONFIG={config},RUN_DIR={run_dir},REPO={REPO},HEAD_IP=127.0.0.1,RAY_CPUS=3,"
-              f"RAY_TMPDIR={slurm.d}/ray,RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0")
+              f"RAY_TMPDIR={slurm.d}/ray,RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0,{token}")
     res = slurm.run("sbatch", "--wait", "--nodes=1", "--time=30", f"--output={out}", f"--export={export}",
                     str(REPO / "examples" / "slurm_batch.sh"), timeout=1500, cwd=str(slurm.d))
     text = out.read_text() if out.exists() else ""
