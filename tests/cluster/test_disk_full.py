@@ -42,6 +42,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_it_resumes_once_space_is_free
     assert res.returncode == 2, res.stderr[-3000:]
     assert len(lines) == 1 and lines[0].startswith("error: ") and str(small_disk) in lines[0], res.stderr[-3000:]
     assert "no space left on device" in lines[0]
+    print(f"full: {lines[0]}")  # shown by `pytest -rA`: the closing note of a drill quotes it
     recorded = sum(count_records(stage_dir(run, s)) for s in DATA_STAGES if stage_dir(run, s).exists())
     verify = subprocess.run(cli("verify", str(run)), capture_output=True, text=True, timeout=300)
     assert verify.returncode == 0, verify.stdout + verify.stderr  # every output recorded done is whole
@@ -50,5 +51,6 @@ def test_a_full_disk_stops_the_run_in_one_line_and_it_resumes_once_space_is_free
     again = subprocess.run(cli("-q", "run", str(config_file), "--run-dir", str(run)), capture_output=True, text=True, timeout=900, env=LOOPBACK_ENV)
     assert again.returncode == 0, again.stderr[-3000:]
     assert sum(count_records(stage_dir(run, s)) for s in DATA_STAGES) >= recorded
+    print(f"resumed: {dataset_content_hash(run)} (local run: {local_hash}); {recorded} records before the resume")
     assert dataset_content_hash(run) == local_hash
     assert not [p for p in run.rglob(".*.tmp-*")]  # no leftovers of the interrupted writes

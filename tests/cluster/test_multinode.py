@@ -61,6 +61,7 @@ def test_a_run_spreads_over_the_nodes_and_writes_the_local_runs_bytes(cluster, l
     node_ids = {n["NodeID"][:12] for n in ray.nodes() if n["Alive"]}
     assert set().union(*nodes.values()) <= node_ids
     assert all(n["NodeManagerAddress"] == "127.0.0.1" for n in ray.nodes())  # loopback only
+    print(f"nodes {sorted(set().union(*nodes.values()))}; {dataset_content_hash(tmp_path)} (local run: {local_hash})")
     assert dataset_content_hash(tmp_path) == local_hash
 
 

@@ -127,6 +127,7 @@ class LocalSlurm:
         kill_pids(pids_using(str(self.d)))  # job steps' leftovers (the Ray head) by their ids
         self.ns.kill()
         self.ns.wait()
+        shutil.rmtree(self.d, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")
