@@ -84,13 +84,36 @@ def console(level: int = logging.INFO, stream=None) -> None:
     logging.captureWarnings(True)  # Python warnings become records of "py.warnings": kept from the console
 
 
+class _LogFile(logging.FileHandler):
+    """A log file that goes quiet once it cannot be written (a full disk): the command's own
+    error says what happened, rather than a traceback per message on stderr."""
+
+    broken = False
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if not self.broken:
+            super().emit(record)
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        if isinstance(sys.exc_info()[1], OSError):
+            self.broken = True
+            return
+        super().handleError(record)
+
+    def close(self) -> None:
+        try:
+            super().close()
+        except OSError:  # its last flush found the disk full
+            self.broken = True
+
+
 @contextmanager
 def to_file(path: Path):
     """Append every ``anchordp3`` record from INFO, and other libraries' warnings, to ``path``
     (created with its folder) for the duration of the block."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(path, encoding="utf-8")
+    handler = _LogFile(path, encoding="utf-8")
     handler.setFormatter(logging.Formatter(FILE_FORMAT))
     handler.addFilter(_Levels(logging.INFO, logging.WARNING))
     setattr(handler, _HANDLER_MARK, "file")

@@ -3,6 +3,8 @@
 #
 #   RAY_ADDRESS=http://HEAD:8265 bash examples/ray_job_submit.sh NAME [CONFIG]
 #
+# RUN_DIR (default /shared/runs/NAME) names another run directory; CONFIG may be a path inside
+# this repository (uploaded with the job) or an absolute path every node can read.
 # - Every node needs the same environment (this package and its dependencies, e.g. the same
 #   virtualenv or container image): stage fingerprints include the package version, so mixed
 #   versions would be refused on resume.
@@ -11,11 +13,13 @@
 # - The working directory (this repository) is uploaded with the job; its configs/ is what the
 #   entrypoint reads. Large local folders are excluded from the upload.
 # - Submitting the same NAME again resumes the run: done items are kept, the rest is redone.
+# - Ray 2.5x clusters use token authentication: give this shell the cluster's token too
+#   (RAY_AUTH_MODE=token and RAY_AUTH_TOKEN, or RAY_AUTH_TOKEN_PATH).
 set -euo pipefail
 
 NAME=${1:?usage: ray_job_submit.sh NAME [CONFIG]}
 CONFIG=${2:-configs/full.yaml}
-RUN_DIR=/shared/runs/$NAME
+RUN_DIR=${RUN_DIR:-/shared/runs/$NAME}
 : "${RAY_ADDRESS:?set RAY_ADDRESS to the Ray dashboard of the cluster, e.g. http://HEAD:8265}"
 cd "$(dirname "$0")/.."
 

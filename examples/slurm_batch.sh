@@ -7,6 +7,11 @@
 # Requirements: the repository and its .venv on storage every node mounts (or the same
 # environment installed on each node), and RUN_DIR on shared storage. Resubmitting with the same
 # NAME resumes the run.
+#
+# Settings (environment, e.g. --export=ALL,NAME=x,CONFIG=y): NAME, CONFIG, RUN_DIR, REPO (the
+# repository, default the submit folder), RAY_PORT, RAY_CPUS (logical CPUs per node, default
+# the allocation's), HEAD_IP (the address Ray binds on the head, default the head's first
+# address; 127.0.0.1 on a single host), RAY_TMPDIR (Ray's folder for sockets and logs, default /tmp).
 #SBATCH --job-name=anchordp3
 #SBATCH --nodes=4
 #SBATCH --ntasks-per-node=1
@@ -23,14 +28,15 @@ RUN_DIR=${RUN_DIR:-/shared/runs/$NAME}
 REPO=${REPO:-$SLURM_SUBMIT_DIR}
 BIN=$REPO/.venv/bin
 PORT=${RAY_PORT:-6379}
-CPUS=${SLURM_CPUS_ON_NODE:-$(nproc)}
+CPUS=${RAY_CPUS:-${SLURM_CPUS_ON_NODE:-$(nproc)}}
 
 cd "$REPO"
 "$BIN/anchordp3" config validate "$CONFIG"   # a bad config fails here, before any node is touched
 
 mapfile -t NODES < <(scontrol show hostnames "$SLURM_JOB_NODELIST")
 HEAD=${NODES[0]}
-HEAD_IP=$(srun --nodes=1 --ntasks=1 -w "$HEAD" hostname --ip-address | awk '{print $1}')
+HEAD_IP=${HEAD_IP:-$(srun --nodes=1 --ntasks=1 -w "$HEAD" hostname --ip-address | awk '{print $1}')}
+ADDRESS=$HEAD_IP:$PORT
 echo "ray head: $HEAD ($HEAD_IP:$PORT); workers: ${NODES[*]:1}"
 
 # --block keeps each `ray start` in the foreground of its srun step; the steps end with the job.
@@ -45,15 +51,18 @@ done
 
 # wait until every node has joined (at most 5 minutes)
 for _ in $(seq 60); do
-  alive=$("$BIN/python" -c 'import ray; ray.init(address="auto", logging_level="ERROR"); print(sum(n["Alive"] for n in ray.nodes()))' 2>/dev/null || echo 0)
+  alive=$("$BIN/python" -c 'import ray, sys; ray.init(address=sys.argv[1], logging_level="ERROR"); print(sum(n["Alive"] for n in ray.nodes()))' "$ADDRESS" 2>/dev/null || echo 0)
   [ "$alive" -ge "${#NODES[@]}" ] && break
   sleep 5
 done
 [ "$alive" -ge "${#NODES[@]}" ] || { echo "only $alive of ${#NODES[@]} Ray nodes joined" >&2; exit 1; }
 echo "ray cluster: $alive nodes"
 
-# this batch script runs on the first node, where the head is: --address auto finds it
-"$BIN/anchordp3" run "$CONFIG" --run-dir "$RUN_DIR" --address auto
+# this batch script runs on the first node, where the head is; the address is named, not "auto",
+# so that another Ray on the same machine is never joined
+"$BIN/anchordp3" run "$CONFIG" --run-dir "$RUN_DIR" --address "$ADDRESS"
 "$BIN/anchordp3" verify "$RUN_DIR"
 
-"$BIN/ray" stop || true
+# stop this job's Ray nodes (their srun steps; `ray stop` would stop every Ray on the machine)
+kill $(jobs -p) 2>/dev/null || true
+wait || true

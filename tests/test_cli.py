@@ -51,3 +51,42 @@ def test_snapshot_writes_a_picture_of_four_views(tmp_path):
     assert res.exit_code == 0, res.output
     img = Image.open(out)
     assert img.size[0] == 2 * 320 and img.size[1] >= 2 * 240
+
+
+# ------------------------------------------------------------------- bad input files: one line, exit 2
+@pytest.mark.parametrize("model, keep", [("segmenter", 0), ("classifier", 10), ("policy", 0.5)])  # bytes kept, or a fraction
+def test_a_truncated_model_file_given_to_eval_is_one_line_naming_it(tmp_path, model, keep):
+    """``anchordp3 eval --models DIR`` (a real process: nothing else may reach stderr) with one
+    model file cut short: one line naming that file, exit 2, nothing evaluated."""
+    import shutil
+    import subprocess
+    import sys
+
+    from anchordp3.pipeline.evaluation import PRETRAINED_DIR
+
+    models = tmp_path / "models"
+    shutil.copytree(PRETRAINED_DIR, models)
+    path = models / model / "model.pt"
+    blob = path.read_bytes()
+    path.write_bytes(blob[: int(len(blob) * keep) if isinstance(keep, float) else keep])
+    res = subprocess.run([sys.executable, "-m", "anchordp3.cli", "eval", "--models", str(models), "--out", str(tmp_path / "ev"),
+                          "--episodes", "1"], capture_output=True, text=True, timeout=300)
+    lines = [line for line in (res.stdout + res.stderr).splitlines() if line.strip()]
+    assert res.returncode == 2 and len(lines) == 1, res.stdout + res.stderr
+    assert lines[0].startswith("error: ") and f"{model}/model.pt" in lines[0] and "not a readable checkpoint" in lines[0]
+    assert not (tmp_path / "ev").exists()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("command", [["config", "validate"], ["run"], ["experiment", "recipe"]])
+def test_a_config_file_of_random_bytes_is_one_line_naming_it(tmp_path, seed, command):
+    import random
+
+    cfg = tmp_path / "random.yaml"
+    cfg.write_bytes(random.Random(seed).randbytes(4096))
+    extra = {"run": ["--run-dir", str(tmp_path / "run")], "experiment": ["--out", str(tmp_path / "out")]}.get(command[0], [])
+    res = runner.invoke(app, [*command, str(cfg), *extra])
+    lines = [line for line in res.output.splitlines() if line.strip()]
+    assert res.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error: "), res.output
+    assert str(cfg) in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["random.yaml"]

@@ -19,8 +19,10 @@ import ray
 from anchordp3.logs import Capture, WorkerRecord
 from anchordp3.pipeline.graph import Stage, StageOutput
 from anchordp3.schemas.run import RunConfig
+from anchordp3.stages.files import no_space
 
 FAULTS_ENV = "ANCHORDP3_INJECT_FAULTS"
+NO_SPACE = "NoSpace"  # ``ItemResult.reason`` of an item whose output did not fit on the disk
 
 
 class InjectedFault(RuntimeError):
@@ -47,6 +49,12 @@ class ItemResult(NamedTuple):
     reason: str | None = None
     detail: str = ""
     logs: tuple[WorkerRecord, ...] = ()
+    node: str | None = None  # the Ray node the worker runs on (``node_id``)
+
+
+def node_id() -> str:
+    """This process's Ray node: the first 12 hex digits of its node ID (as ``ray.nodes()`` has it)."""
+    return ray.get_runtime_context().get_node_id()[:12]
 
 
 def one_line(e: BaseException) -> str:
@@ -78,15 +86,16 @@ class StageWorker:
     def run_many(self, calls: list[tuple[str, object, int]]) -> list[ItemResult]:
         """Do each ``(item id, item, attempt)`` in turn (an item that raises does not stop the
         others): per item its ``ItemResult``, with what was logged while it ran."""
-        out = []
+        out, node = [], node_id()
         for item_id, item, attempt in calls:
             with Capture() as cap:
                 try:
                     res, seconds = self.run(item_id, item, attempt)
                     result = ItemResult(res, seconds)
                 except Exception as e:  # noqa: BLE001 - the driver retries, then records the failure
-                    result = ItemResult(None, 0.0, type(e).__name__, one_line(e))
-            out.append(result._replace(logs=tuple(cap.records)))
+                    full = no_space(e)
+                    result = ItemResult(None, 0.0, NO_SPACE, full) if full else ItemResult(None, 0.0, type(e).__name__, one_line(e))
+            out.append(result._replace(logs=tuple(cap.records), node=node))
         return out
 
     def ping(self) -> bool:

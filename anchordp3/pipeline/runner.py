@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import sqlite3
 import sys
 import time
 from collections import deque
@@ -30,7 +31,7 @@ import yaml
 
 import anchordp3
 from anchordp3.logs import replay, to_file
-from anchordp3.pipeline.actors import FAULTS_ENV, ItemResult, StageWorker, one_line
+from anchordp3.pipeline.actors import FAULTS_ENV, NO_SPACE, ItemResult, StageWorker, one_line
 from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.graph import EpisodeItem, Graph, GroupItem, Stage, StageOutput
 from anchordp3.pipeline.lock import RunLock
@@ -39,7 +40,7 @@ from anchordp3.pipeline.work import DATA_GRAPH
 from anchordp3.schemas.episode import episode_id
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.run import RunConfig, config_hash
-from anchordp3.stages.files import atomic_write_bytes
+from anchordp3.stages.files import atomic_write_bytes, no_space, sweep_interrupted_writes
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,14 @@ MAX_BATCH = 256      # items per actor call at most
 
 class RunAborted(RuntimeError):
     """Too many items of a stage failed, or a stage's workers cannot start."""
+
+
+class NoSpaceLeft(RunAborted):
+    """The run directory's disk is full: the run stops at once (what is recorded done is whole),
+    and resumes once space is freed."""
+
+    def __init__(self, what: str):
+        super().__init__(f"{what}; the run stopped: free space there, then run the same command again to resume")
 
 
 @dataclass
@@ -297,19 +306,44 @@ class Runner:
 
     # ----------------------------------------------------------------------------- the run
     def run(self) -> dict:
-        with RunLock(self.run_dir), to_file(self.run_dir / LOG_FILE):
-            stores = self.open_stores()
+        try:
+            with RunLock(self.run_dir), to_file(self.run_dir / LOG_FILE):
+                for st in self.graph.stages:
+                    sweep_interrupted_writes(self._dir(st.name))
+                stores = self.open_stores()
+                try:
+                    self.check_inputs(stores)
+                    atomic_write_bytes(self.run_dir / CONFIG_FILE, yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False).encode())
+                    self._loop(stores)
+                    if self.group is not None and self.group.name in self.enabled:
+                        self._finish(stores)
+                except BaseException:
+                    self._close(stores, failing=True)
+                    raise
+                self._close(stores)
+                return {s: stores[s].manifest.counts.model_dump() for s in self.names}
+        except (OSError, sqlite3.OperationalError) as e:
+            if (what := no_space(e, self.run_dir)) is None:
+                raise
+            raise NoSpaceLeft(what) from None
+
+    def _close(self, stores: dict[str, ManifestStore], failing: bool = False) -> None:
+        """Commit each store's totals and close it. On a full disk the rest are closed without
+        committing (what is not committed is redone on resume) and the error is raised, unless
+        the run is ``failing`` already (its own error is the one to report)."""
+        full = None
+        for s, st in stores.items():
             try:
-                self.check_inputs(stores)
-                atomic_write_bytes(self.run_dir / CONFIG_FILE, yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False).encode())
-                self._loop(stores)
-                if self.group is not None and self.group.name in self.enabled:
-                    self._finish(stores)
-            finally:
-                for s, st in stores.items():
+                if full is None:
                     st.finish(self._planned(stores, s), self._complete(stores, s))
-                    st.close()
-            return {s: stores[s].manifest.counts.model_dump() for s in self.names}
+            except (OSError, sqlite3.OperationalError) as e:
+                if no_space(e) is None:
+                    raise
+                full = e
+            finally:
+                st.close(commit=full is None)
+        if full is not None and not failing:
+            raise full
 
     def _planned(self, stores: dict[str, ManifestStore], s: str) -> int:
         if self.group is not None and s == self.group.name:
@@ -410,15 +444,18 @@ class Runner:
             """Record one item's outcome (an ``actors.ItemResult``) or queue its retry."""
             replay(result.logs, f"{s} {item_id}")
             out, seconds, reason, detail = result.output, result.seconds, result.reason, result.detail
+            if out is None and reason == NO_SPACE:
+                raise NoSpaceLeft(detail)  # not the item's fault: nothing recorded, the run stops
             if out is None and attempt < self.cfg.execution.max_attempts:
                 queues[s].appendleft(key)
                 return
             if out is None:
-                stores[s].record(ItemRecord(item=item_id, status="failed", attempts=attempt, reason=reason, detail=detail), durable=False)
+                stores[s].record(ItemRecord(item=item_id, status="failed", attempts=attempt, reason=reason, detail=detail,
+                                            node=result.node), durable=False)
                 self.stats.failed[s] += 1
                 self._check_failures(stores, s)
             else:
-                stores[s].record(_done_record(item_id, out, seconds, attempt), durable=False)
+                stores[s].record(_done_record(item_id, out, seconds, attempt, result.node), durable=False)
                 if s != group and not out.info.continues:
                     self.halted[s].add(item_id)
                 self.stats.done[s] += 1
@@ -546,7 +583,9 @@ class Runner:
             gpus = pc.gpus if pc.gpus is not None else (1.0 / n if s == "render" and gpus_available else 0.0)
             if gpus > 0 and not gpus_available:
                 raise ValueError(f"execution.pools.{s}.gpus: {gpus} GPUs asked for, but the Ray cluster has none")
-            pools[s] = [StageWorker.options(num_cpus=pc.cpus, num_gpus=gpus, max_restarts=-1, max_task_retries=0)
+            # SPREAD: a pool's actors go to different nodes where they fit (on one node: no change)
+            options = dict(num_cpus=pc.cpus, num_gpus=gpus, max_restarts=-1, max_task_retries=0, scheduling_strategy="SPREAD")
+            pools[s] = [StageWorker.options(**options)
                         .remote(self.graph[s], str(self.run_dir.resolve()), self.cfg.model_dump_json(), self.opts.faults) for _ in range(n)]
         return pools
 
@@ -571,9 +610,9 @@ def _group_id(k: int) -> str:
     return f"shard/{k:05d}"
 
 
-def _done_record(item_id: str, out: StageOutput, seconds: float, attempt: int) -> ItemRecord:
+def _done_record(item_id: str, out: StageOutput, seconds: float, attempt: int, node: str | None = None) -> ItemRecord:
     return ItemRecord(item=item_id, status="done", output=out.output, checksum=out.checksum, seconds=seconds,
-                      attempts=attempt, info=out.info.model_dump(mode="json"))
+                      attempts=attempt, info=out.info.model_dump(mode="json"), node=node)
 
 
 class _TokenAuthNotice(logging.Filter):

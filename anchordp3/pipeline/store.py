@@ -364,12 +364,15 @@ class ManifestStore:
         self._commit()
         return self.manifest
 
-    def close(self) -> None:
-        """Commit what is pending and close the file."""
+    def close(self, commit: bool = True) -> None:
+        """Commit what is pending (unless not ``commit``: it is dropped) and close the file."""
         if getattr(self, "db", None) is not None:
-            self.flush()
-            self.db.close()
-            self.db = None
+            try:
+                if commit:
+                    self.flush()
+            finally:
+                self.db.close()
+                self.db = None
 
     # ------------------------------------------------------------------------------ helpers
     def _count(self, rec: ItemRecord | None, sign: int) -> None:

@@ -59,6 +59,8 @@ class ItemRecord(BaseModel):
     detail: str = Field(default="", description="Failure message, one line.")
     info: dict = Field(default_factory=dict, description="The stage's own facts, its payload model as JSON "
                                                       "(schemas.records: read them with ``payload``).")
+    node: str | None = Field(default=None, description="The Ray node that did the item (its node ID's first 12 hex "
+                                                       "digits; None when not known, e.g. records from before nodes were noted).")
 
     def payload(self, model: type[P]) -> P:
         """``info`` as its stage's payload model, e.g. ``rec.payload(RolloutInfo).record.steps``."""

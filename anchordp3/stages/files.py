@@ -2,14 +2,23 @@
 
 from __future__ import annotations
 
+import errno
 import io
+import logging
 import os
+import shutil
+import sqlite3
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)  # fixed zip timestamps: the same arrays give the same bytes
+_NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+_SQLITE_FULL = 13  # SQLITE_FULL: "database or disk is full"
+TMP_MARK = ".tmp-"  # in the name of a write in progress: ``.<name>.tmp-<pid>`` (a file, or a folder of a zarr shard)
+
+log = logging.getLogger(__name__)
 
 
 # Where each episode stage puts an episode's output, relative to the stage folder. They live here, in
@@ -33,12 +42,47 @@ def features_file(task: str, seed: int) -> str:
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that a crash leaves either the old file or the new one."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    tmp = path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)  # a full disk must not keep the half-written bytes
+        if e.errno in _NO_SPACE:
+            e.filename = str(path)  # the file that was being written, not its temporary name
+        raise
+
+
+def no_space(e: BaseException, where: Path | str | None = None) -> str | None:
+    """``"<path>: no space left on device"`` when ``e`` is a full disk (or quota) while writing,
+    else None. ``<path>``: the file being written where the error knows it, else ``where``."""
+    if isinstance(e, OSError) and e.errno in _NO_SPACE:
+        return f"{e.filename or where or 'a file'}: {os.strerror(e.errno).lower()}"
+    if isinstance(e, sqlite3.OperationalError) and getattr(e, "sqlite_errorcode", None) == _SQLITE_FULL:
+        return f"{where or 'a manifest'}: no space left on device (SQLite: {e})"
+    return None
+
+
+def sweep_interrupted_writes(root: Path) -> int:
+    """Delete what interrupted writes left under ``root`` (``.<name>.tmp-<pid>`` files and folders:
+    a write killed before its rename); returns how many. Call it only while no one writes there
+    (the run's lock held): the leftovers hold disk space a resumed run may need."""
+    swept = 0
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in [n for n in dirnames if n.startswith(".") and TMP_MARK in n]:
+            shutil.rmtree(Path(dirpath) / name, ignore_errors=True)
+            dirnames.remove(name)
+            swept += 1
+        for name in filenames:
+            if name.startswith(".") and TMP_MARK in name:
+                (Path(dirpath) / name).unlink(missing_ok=True)
+                swept += 1
+    if swept:
+        log.info(f"{root}: removed {swept} temporary file(s) of interrupted writes")
+    return swept
 
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:

@@ -12,14 +12,12 @@ import os
 import random
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import pytest
 import ray
-import yaml
 from ray.cluster_utils import Cluster
 
 from anchordp3.pipeline.report import dataset_content_hash
@@ -30,37 +28,11 @@ from anchordp3.schemas.run import RunConfig
 
 pytestmark = pytest.mark.cluster
 
+from tests.cluster.helpers import TINY, cli as _cli
+
 STAGES = ("rollout", "anchors", "render", "features", "write")
-# 3 logical CPUs in all, so that every pool still fits once a 2-CPU worker node is gone
-POOLS = {"rollout": {"workers": 2, "cpus": 0.4}, "anchors": {"workers": 1, "cpus": 0.2}, "render": {"workers": 2, "cpus": 0.5},
-         "features": {"workers": 2, "cpus": 0.4}, "write": {"workers": 1, "cpus": 0.2}}
-TINY = {
-    "name": "cluster", "tasks": ["place_mouse", "place_bell"], "seeds": "0-3", "preset": "randomized",
-    "cameras": {"width": 64, "height": 48}, "features": {"n_points": 256},
-    "anchors": {"dagger": {"fraction": 0.2}}, "write": {"episodes_per_shard": 2, "validation_fraction": 0.25},
-    "execution": {"pools": POOLS},
-}
 CFG = RunConfig.model_validate(TINY)
 LOOPBACK = {"node_ip_address": "127.0.0.1"}
-
-
-def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "anchordp3.cli", *args]
-
-
-@pytest.fixture(scope="module")
-def config_file(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("cfg") / "cluster.yaml"
-    path.write_text(yaml.safe_dump(TINY, sort_keys=False))
-    return path
-
-
-@pytest.fixture(scope="module")
-def local_hash(config_file, tmp_path_factory) -> str:
-    """The dataset hash of the same config run on one local Ray (the CLI, its own process)."""
-    run = tmp_path_factory.mktemp("local")
-    subprocess.run(_cli("-q", "run", str(config_file), "--run-dir", str(run)), check=True, timeout=900)
-    return dataset_content_hash(run)
 
 
 @pytest.fixture
@@ -89,6 +61,7 @@ def test_a_run_spreads_over_the_nodes_and_writes_the_local_runs_bytes(cluster, l
     node_ids = {n["NodeID"][:12] for n in ray.nodes() if n["Alive"]}
     assert set().union(*nodes.values()) <= node_ids
     assert all(n["NodeManagerAddress"] == "127.0.0.1" for n in ray.nodes())  # loopback only
+    print(f"nodes {sorted(set().union(*nodes.values()))}; {dataset_content_hash(tmp_path)} (local run: {local_hash})")
     assert dataset_content_hash(tmp_path) == local_hash
 
 
