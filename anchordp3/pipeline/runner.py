@@ -622,6 +622,20 @@ class _TokenAuthNotice(logging.Filter):
         return not record.getMessage().startswith("Token authentication is enabled")
 
 
+# Ray (2.60) turns a node address of 127.0.0.1 into the machine's routable one, and its servers then
+# listen on every address, unless it believes it runs on a one-machine platform (its Windows/macOS
+# switch): set for a local Ray, it keeps 127.0.0.1. Processes Ray starts inherit it from the environment.
+LOOPBACK_ENV = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+
+
+def keep_ray_on_loopback() -> None:
+    """Make a Ray that this process starts (``ray.init``, ``ray start``) listen on 127.0.0.1 only."""
+    os.environ.update(LOOPBACK_ENV)
+    import ray._private.ray_constants as constants
+
+    constants.ENABLE_RAY_CLUSTER = False  # read when Ray was imported: set it here too
+
+
 def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph = DATA_GRAPH) -> None:
     """Connect to Ray: the running instance if any, a cluster at ``address`` (else at ``RAY_ADDRESS``,
     as inside a Ray Job), or a new local one with enough logical CPUs for every pool (CPU counts are
@@ -631,6 +645,8 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph =
         return
     address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
+        if address.split("://")[-1].split(":")[0] in ("127.0.0.1", "localhost"):
+            keep_ray_on_loopback()  # else Ray dials the routable address, where a loopback-only cluster does not listen
         ray.init(address=address, logging_level="WARNING", log_to_driver=False)
         return
     need = 0.0
@@ -640,6 +656,7 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph =
     # A new local Ray enables token authentication by default and warns that it did: nothing a
     # user needs to act on, so that one message is dropped. It listens on loopback only.
     logging.getLogger("ray._private.authentication.authentication_token_setup").addFilter(_TokenAuthNotice())
+    keep_ray_on_loopback()
     ray.init(address="local", num_cpus=max(os.cpu_count() or 1, math.ceil(need)), include_dashboard=False, logging_level="WARNING",
              log_to_driver=False, object_store_memory=100 * 1024**2, _node_ip_address="127.0.0.1")
 

@@ -12,24 +12,22 @@ import sys
 import tempfile
 from pathlib import Path
 
+from anchordp3.pipeline.runner import LOOPBACK_ENV as LOOPBACK
+from anchordp3.pipeline.runner import keep_ray_on_loopback
+
 
 REPO = Path(__file__).resolve().parents[2]
-# Ray turns a node address of 127.0.0.1 into the machine's routable one (and its servers then
-# listen on every address) unless it believes it runs on a one-machine platform: this makes a
-# Ray started by the process (``ray start --head``, a local ``ray.init``) bind 127.0.0.1.
-# The same holds for an address given to ``ray.init``: 127.0.0.1:PORT would be dialled at the
-# routable address, where a loopback-only cluster does not listen. ``loopback_only`` sets it for
-# this process (before Ray is imported) and every process it starts.
-LOOPBACK = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+# Every Ray these tests start keeps 127.0.0.1 (see ``runner.LOOPBACK_ENV``): this process's through
+# ``loopback_only``, the processes it starts through ``LOOPBACK_ENV`` in their environment. An address
+# given to ``ray.init`` needs it too: 127.0.0.1:PORT would otherwise be dialled at the routable address.
 LOOPBACK_ENV = {**os.environ, **LOOPBACK}
 
 
 def loopback_only() -> None:
-    """Make this process's Ray keep 127.0.0.1 as it is (see ``LOOPBACK``)."""
-    os.environ.update(LOOPBACK)
-    import ray._private.ray_constants as constants
+    """Make this process's Ray keep 127.0.0.1 as it is."""
+    keep_ray_on_loopback()
 
-    constants.ENABLE_RAY_CLUSTER = False  # read at import: in case Ray came in first
+
 BIN = Path(sys.executable).parent  # the virtualenv's bin: anchordp3, ray
 POOLS = {"rollout": {"workers": 2, "cpus": 0.4}, "anchors": {"workers": 1, "cpus": 0.2}, "render": {"workers": 2, "cpus": 0.5},
          "features": {"workers": 2, "cpus": 0.4}, "write": {"workers": 1, "cpus": 0.2}}

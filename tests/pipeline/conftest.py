@@ -11,8 +11,11 @@ def ray_session():
     (``runner.ensure_ray`` then finds it and joins it); shut down at the end."""
     import ray
 
+    from anchordp3.pipeline.runner import keep_ray_on_loopback
+
     started = not ray.is_initialized()
     if started:
+        keep_ray_on_loopback()
         ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1", object_store_memory=80 * 1024**2,
                  logging_level="WARNING", log_to_driver=False)
     yield ray
