@@ -45,8 +45,11 @@ srun --nodes=1 --ntasks=1 -w "$HEAD" --overlap \
   --include-dashboard=false --block &
 sleep 10
 for node in "${NODES[@]:1}"; do
+  # each worker binds the address named for it: its own, or loopback when the head is on loopback
+  if [ "$HEAD_IP" = 127.0.0.1 ]; then NODE_IP=127.0.0.1
+  else NODE_IP=$(srun --nodes=1 --ntasks=1 -w "$node" --overlap hostname --ip-address | awk '{print $1}'); fi
   srun --nodes=1 --ntasks=1 -w "$node" --overlap \
-    "$BIN/ray" start --address="$HEAD_IP:$PORT" --num-cpus="$CPUS" --block &
+    "$BIN/ray" start --address="$HEAD_IP:$PORT" --node-ip-address="$NODE_IP" --num-cpus="$CPUS" --block &
 done
 
 # wait until every node has joined (at most 5 minutes)
