@@ -24,6 +24,7 @@ from torch import nn
 
 from anchordp3.models.device import autocast
 from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
+from anchordp3.models.kernels import fast_kernels
 from anchordp3.models.normalizer import MinMaxNormalizer
 from anchordp3.models.objects import ObjectTokenEncoder, object_tokens, token_features, token_gripper_offsets
 from anchordp3.models.unet1d import ConditionalUnet1D
@@ -204,9 +205,11 @@ class AnchorDiffusionPolicy(nn.Module):
         if not 1 <= steps <= self.config.scheduler.num_train_timesteps:
             raise ValueError(f"ddim steps: {steps} outside 1..{self.config.scheduler.num_train_timesteps}")
         scheduler.set_timesteps(steps)  # CPU timesteps; the U-Net moves them
-        for t in scheduler.timesteps:
+        with autocast(self.device, self.mixed_precision):  # every step's FiLM at once (the reference kernels: per step)
+            table = self.unet.film_table(cond, scheduler.timesteps) if fast_kernels() else None
+        for i, t in enumerate(scheduler.timesteps):
             with autocast(self.device, self.mixed_precision):
-                out = self.unet(x, t, cond)
+                out = self.unet(x, t, cond, film=None if table is None else [f[i] for f in table])
             x = scheduler.step(out.float() + shift, t, x).prev_sample
         if samples > 1:
             x = medoid(x.view(b, samples, *x.shape[1:]))

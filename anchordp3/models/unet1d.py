@@ -9,7 +9,7 @@ H = 8 with three levels goes 8 -> 4 -> 2 -> 4 -> 8.
 from __future__ import annotations
 
 import math
-from itertools import pairwise
+from itertools import pairwise, repeat
 
 import torch
 import torch.nn.functional as F
@@ -47,10 +47,44 @@ class SequenceConv1d(nn.Conv1d):
         (k,), (stride,), (pad,) = self.kernel_size, self.stride, self.padding
         cols = F.pad(x, (pad, pad)).unfold(2, k, stride)  # (B, C_in, T_out, k)
         b, _, t_out, _ = cols.shape
-        flat = cols.permute(0, 2, 1, 3).reshape(b * t_out, -1)  # (B * T_out, C_in * k)
-        weight = self.weight.reshape(self.out_channels, -1)
+        lo, hi = max(0, pad - (t_out - 1) * stride), min(k, pad + x.shape[2])  # taps that ever read an input
+        flat = cols[..., lo:hi].permute(0, 2, 1, 3).reshape(b * t_out, -1)  # (B * T_out, C_in * taps)
+        weight = self._tap_weight(lo, hi)
         y = flat @ weight.t() if self.bias is None else torch.addmm(self.bias, flat, weight.t())
         return y.reshape(b, t_out, self.out_channels).transpose(1, 2)
+
+    def _tap_weight(self, lo: int, hi: int) -> torch.Tensor:
+        """The weight of taps ``lo..hi-1`` as ``(C_out, C_in * taps)``. On a sequence shorter than
+        the kernel the outer taps only ever meet the zero padding (T = 2, kernel 5: two of five), so
+        they are left out of the product, which is bound by reading the weight from memory; the
+        sliced copy is kept until the weight changes."""
+        if (lo, hi) == (0, self.kernel_size[0]):
+            return self.weight.reshape(self.out_channels, -1)
+        key = (lo, hi, self.weight._version, self.weight.data_ptr())
+        cached = getattr(self, "_taps", None)
+        if cached is None or cached[0] != key:
+            cached = (key, self.weight[:, :, lo:hi].reshape(self.out_channels, -1).contiguous())
+            self._taps = cached
+        return cached[1]
+
+
+class SequenceConvTranspose1d(nn.ConvTranspose1d):
+    """``nn.ConvTranspose1d`` (same parameters, same checkpoints) that, for inference on the CPU, runs
+    as one matrix product and a ``fold`` (col2im), where PyTorch's transposed-convolution kernel
+    costs ~100 us on the U-Net's sequences of 2-4; the same conditions as ``SequenceConv1d``.
+    x: (B, C_in, T) -> (B, C_out, T_out)."""
+
+    def forward(self, x: torch.Tensor, output_size: list[int] | None = None) -> torch.Tensor:
+        if not fast_kernels() or torch.is_grad_enabled() or x.device.type != "cpu" or self.groups != 1 or self.dilation != (1,) or \
+                self.padding_mode != "zeros" or output_size is not None or self.output_padding != (0,):
+            return super().forward(x, output_size)
+        (k,), (stride,), (pad,) = self.kernel_size, self.stride, self.padding
+        b, _, t = x.shape
+        t_out = (t - 1) * stride - 2 * pad + k
+        cols = self.weight.reshape(self.in_channels, -1).t() @ x  # (B, C_out * k, T): every input's k contributions
+        y = F.fold(cols, (1, t_out), (1, k), padding=(0, pad), stride=(1, stride))  # (B, C_out, 1, T_out)
+        y = y.squeeze(2)
+        return y if self.bias is None else y + self.bias[:, None]
 
 
 class ConvNormMish(nn.Module):
@@ -71,7 +105,8 @@ class ConvNormMish(nn.Module):
 class FiLMResidualBlock(nn.Module):
     """Two ``ConvNormMish`` with FiLM between them, plus a (1x1-projected) residual.
 
-    x: (B, C_in, T); cond: (B, cond_dim) -> (B, C_out, T)."""
+    x: (B, C_in, T); cond: (B, cond_dim) -> (B, C_out, T). With ``film`` (B, 2 C_out), this
+    block's row of ``ConditionalUnet1D.film_table``, the FiLM linear is not run and ``cond`` is unused."""
 
     def __init__(self, in_channels: int, out_channels: int, cond_dim: int, kernel_size: int, n_groups: int) -> None:
         super().__init__()
@@ -80,9 +115,10 @@ class FiLMResidualBlock(nn.Module):
         self.film = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, 2 * out_channels))
         self.residual = SequenceConv1d(in_channels, out_channels, 1) if in_channels != out_channels else nn.Identity()
 
-    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, cond: torch.Tensor | None, film: torch.Tensor | None = None) -> torch.Tensor:
         h = self.conv1(x)
-        scale, bias = self.film(cond).unsqueeze(-1).chunk(2, dim=1)  # (B, C_out, 1) each
+        film = self.film(cond) if film is None else film
+        scale, bias = film.unsqueeze(-1).chunk(2, dim=1)  # (B, C_out, 1) each
         h = self.conv2(scale * h + bias)
         return h + self.residual(x)
 
@@ -117,26 +153,59 @@ class ConditionalUnet1D(nn.Module):
             self.up.append(nn.ModuleList([
                 FiLMResidualBlock(2 * cin, cout, film_dim, k, g),
                 FiLMResidualBlock(cout, cout, film_dim, k, g),
-                nn.ConvTranspose1d(cout, cout, 4, stride=2, padding=1),
+                SequenceConvTranspose1d(cout, cout, 4, stride=2, padding=1),
             ]))
         self.final = nn.Sequential(ConvNormMish(config.down_dims[0], config.down_dims[0], k, g), SequenceConv1d(config.down_dims[0], input_dim, 1))
         self.downsamples = levels - 1
 
-    def forward(self, sample: torch.Tensor, timestep: torch.Tensor | int, global_cond: torch.Tensor) -> torch.Tensor:
+    def film_blocks(self) -> list[FiLMResidualBlock]:
+        """The FiLM blocks in the order ``forward`` runs them (``film_table``'s order)."""
+        return [m for m in self.modules() if isinstance(m, FiLMResidualBlock)]
+
+    def film_table(self, global_cond: torch.Tensor, timesteps: torch.Tensor) -> list[torch.Tensor]:
+        """Every FiLM block's (scale, bias) at each of ``timesteps`` for one observation feature:
+        a list over ``film_blocks()`` of ``(S, B, 2 C_out)``; ``forward(..., film=[f[i] for f in table])``
+        then runs step i without its FiLM linears.
+
+        A block's FiLM is ``W mish([step embedding, global_cond]) + b`` = ``W_step mish(step
+        embedding) + (W_obs mish(global_cond) + b)``: the first term depends on the step only, the
+        second on the observation only, so sampling computes both once per decision instead of
+        every DDIM step (the FiLM linears hold about half the U-Net's weights, read from memory at
+        each step otherwise). Equal to the per-step FiLM to float rounding.
+        global_cond: (B, cond_dim); timesteps: (S,) diffusion steps."""
+        e = self.config.step_embed_dim
+        step = F.mish(self.step_encoder(torch.as_tensor(timesteps, device=global_cond.device).reshape(-1)).to(global_cond.dtype))
+        obs = F.mish(global_cond)
+        table = []
+        for block in self.film_blocks():
+            linear = block.film[1]
+            table.append((step @ linear.weight[:, :e].t())[:, None] + F.linear(obs, linear.weight[:, e:], linear.bias)[None])
+        return table
+
+    def forward(self, sample: torch.Tensor, timestep: torch.Tensor | int, global_cond: torch.Tensor,
+                film: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """``film``: one ``(B, 2 C_out)`` per FiLM block, a step's slice of ``film_table`` (the
+        FiLM linears and the step encoder are then skipped); None computes them from the inputs."""
         b, t, _ = sample.shape
         if t % (2 ** self.downsamples):
             raise ValueError(f"unet: horizon {t} not divisible by {2 ** self.downsamples} ({self.downsamples + 1} levels)")
-        timestep = torch.as_tensor(timestep, device=sample.device).reshape(-1).expand(b)
-        cond = torch.cat([self.step_encoder(timestep).to(global_cond.dtype), global_cond], dim=-1)
+        if film is None:
+            timestep = torch.as_tensor(timestep, device=sample.device).reshape(-1).expand(b)
+            cond = torch.cat([self.step_encoder(timestep).to(global_cond.dtype), global_cond], dim=-1)
+            films = repeat(None)
+        else:
+            cond, films = None, iter(film)
         x = sample.transpose(1, 2)  # (B, C, T)
         skips = []
         for block1, block2, downsample in self.down:
-            x = block2(block1(x, cond), cond)
+            x = block1(x, cond, next(films))
+            x = block2(x, cond, next(films))
             skips.append(x)
             x = downsample(x)
         for block in self.mid:
-            x = block(x, cond)
+            x = block(x, cond, next(films))
         for block1, block2, upsample in self.up:
             x = torch.cat([x, skips.pop()], dim=1)
-            x = upsample(block2(block1(x, cond), cond))
+            x = block1(x, cond, next(films))
+            x = upsample(block2(x, cond, next(films)))
         return self.final(x).transpose(1, 2)

@@ -13,7 +13,7 @@ from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
 from anchordp3.models.encoders import soft_keypoints
 from anchordp3.models.kernels import reference_kernels
-from anchordp3.models.unet1d import ConditionalUnet1D, SequenceConv1d
+from anchordp3.models.unet1d import ConditionalUnet1D, SequenceConv1d, SequenceConvTranspose1d
 from anchordp3.models.policy import GRIPPER_OFFSET_SCALE, AnchorDiffusionPolicy, gripper_offsets, medoid
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import (
@@ -71,14 +71,48 @@ def test_relative_targets_round_trip_and_make_a_fixed_offset_a_constant() -> Non
     torch.testing.assert_close(policy.from_target(x, batch["state"]), batch["anchors"], atol=1e-5, rtol=0)
 
 
+@pytest.mark.parametrize("length", [8, 2, 1])  # 2 and 1: the outer taps of kernel 5 only meet the padding
 @pytest.mark.parametrize("kernel, stride, padding", [(5, 1, 2), (3, 2, 1), (1, 1, 0)])
-def test_cpu_inference_convolution_matches_torchs(kernel, stride, padding) -> None:
+def test_cpu_inference_convolution_matches_torchs(kernel, stride, padding, length) -> None:
     torch.manual_seed(0)
     conv = SequenceConv1d(16, 24, kernel, stride=stride, padding=padding)
-    x = torch.randn(3, 16, 8)
+    x = torch.randn(3, 16, length)
     with torch.no_grad():
         fast = conv(x)  # the unfolded matrix product
+        again = conv(x)  # the sliced weight from the cache
     torch.testing.assert_close(fast, F.conv1d(x, conv.weight, conv.bias, stride, padding), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(again, fast)
+
+
+def test_the_convolutions_sliced_weight_follows_a_changed_weight() -> None:
+    conv = SequenceConv1d(4, 6, 5, padding=2)
+    x = torch.randn(1, 4, 2)
+    with torch.no_grad():
+        conv(x)
+        conv.weight.mul_(2.0)  # as an optimizer step or load_state_dict would
+        torch.testing.assert_close(conv(x), F.conv1d(x, conv.weight, conv.bias, 1, 2), atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("length", [1, 2, 4])
+@pytest.mark.parametrize("kernel, stride, padding", [(4, 2, 1), (3, 2, 1), (5, 1, 2)])
+def test_cpu_inference_transposed_convolution_matches_torchs(kernel, stride, padding, length) -> None:
+    torch.manual_seed(0)
+    conv = SequenceConvTranspose1d(12, 10, kernel, stride=stride, padding=padding)
+    x = torch.randn(2, 12, length)
+    with torch.no_grad():
+        fast = conv(x)  # one matrix product and a fold
+    torch.testing.assert_close(fast, F.conv_transpose1d(x, conv.weight, conv.bias, stride, padding), atol=1e-5, rtol=1e-5)
+
+
+def test_the_unet_step_from_its_film_table_matches_the_step_from_the_condition() -> None:
+    torch.manual_seed(0)
+    unet = ConditionalUnet1D(32, 40, TINY.unet).eval()
+    x, cond, steps = torch.randn(2, 8, 32), torch.randn(2, 40), torch.tensor([90, 60, 30, 0])
+    with torch.no_grad():
+        table = unet.film_table(cond, steps)
+        assert [tuple(f.shape) for f in table] == [(4, 2, 2 * b.conv1.block[0].out_channels) for b in unet.film_blocks()]
+        for i, t in enumerate(steps):
+            torch.testing.assert_close(unet(x, t, None, film=[f[i] for f in table]), unet(x, t, cond), atol=1e-5, rtol=1e-5)
 
 
 def test_unet_inference_matches_the_reference_kernels() -> None:
@@ -91,6 +125,17 @@ def test_unet_inference_matches_the_reference_kernels() -> None:
             reference = unet(x, torch.tensor([3, 70]), cond)
     torch.testing.assert_close(fast, reference, atol=1e-4, rtol=1e-4)
     torch.testing.assert_close(unet(x, torch.tensor([3, 70]), cond).detach(), reference)  # training: torch's own conv
+
+
+def test_sampling_with_the_fast_kernels_gives_the_reference_kernels_anchors() -> None:
+    policy = make_policy().eval()
+    batch = samples(2)
+    policy.set_normalizers(stats_of(batch))
+    obs = {k: batch[k] for k in ("points", "state", "task_id")}
+    fast = policy.predict(obs, generator=torch.Generator().manual_seed(0))  # FiLM table, sliced taps, folds
+    with reference_kernels():
+        reference = policy.predict(obs, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(fast, reference, atol=1e-4, rtol=1e-4)
 
 
 def test_fewer_ddim_steps_can_be_asked_for_at_decision_time() -> None:
