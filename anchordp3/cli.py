@@ -119,7 +119,7 @@ def run(
     run_dir: Path = typer.Option(..., "--run-dir", help="Run directory (local, or shared by every cluster node)."),
     stages: str = typer.Option(None, help="Comma-separated data stages to run (default: all)."),
     workers: int = typer.Option(None, min=1, help="Actors per stage pool (overrides the config)."),
-    address: str = typer.Option(None, help="Ray cluster to join: auto or ray://HOST:PORT (default: a local Ray)."),
+    address: str = typer.Option(None, help="Ray cluster to join: auto or ray://HOST:PORT (default: $RAY_ADDRESS, else a local Ray)."),
     force: bool = typer.Option(False, "--force", help="Redo the stages a config or code change invalidated."),
     from_stage: str = typer.Option(None, "--from-stage", help="Redo this stage and everything after it."),
     keep_outputs: bool = typer.Option(False, "--keep-outputs", help=KEEP_OUTPUTS_HELP),
@@ -174,7 +174,7 @@ def show(
 def demo(
     run_dir: Path = typer.Option(Path("runs/demo"), "--run-dir", help="Run directory (re-running resumes it)."),
     seeds: str = typer.Option(None, help="Seeds per task (default: the embedded config's)."),
-    address: str = typer.Option(None, help="Ray cluster to join (default: a local Ray)."),
+    address: str = typer.Option(None, help="Ray cluster to join (default: $RAY_ADDRESS, else a local Ray)."),
     episodes: int = typer.Option(1, "--episodes", min=1, help="Evaluation episodes per task."),
     max_decisions: int = typer.Option(40, "--max-decisions", min=1, help="Cap on policy calls per evaluation episode."),
     data_only: bool = typer.Option(False, "--data-only", help="Stop after the data stages."),
@@ -217,7 +217,7 @@ def inspect(
 def verify(
     run_dir: Path = typer.Argument(..., help="Run directory."),
     repair: bool = typer.Option(False, "--repair", help="Forget the broken items, resume the run to redo exactly them, verify again."),
-    address: str = typer.Option(None, help="With --repair: Ray cluster to join (auto or ray://HOST:PORT; default: a local Ray)."),
+    address: str = typer.Option(None, help="With --repair: Ray cluster to join (auto or ray://HOST:PORT; default: $RAY_ADDRESS, else a local Ray)."),
 ) -> None:
     """Check every done item's output against its recorded checksum; exit 1 when any is missing or corrupt."""
     raise typer.Exit(_verify(run_dir, repair, address))
@@ -321,7 +321,7 @@ def eval_(
     max_decisions: int = typer.Option(None, "--max-decisions", min=1, help="Cap on policy calls per episode (default: only the step limit)."),
     device: str = typer.Option("auto", "--device", help="Torch device of the actors: auto (CUDA when the cluster has GPUs), cpu or cuda."),
     first_seed: int = typer.Option(None, "--first-seed", min=0, help="First evaluation seed (default: max training seed + 1000)."),
-    address: str = typer.Option(None, "--address", help="Ray cluster address (default: a local Ray)."),
+    address: str = typer.Option(None, "--address", help="Ray cluster address (default: $RAY_ADDRESS, else a local Ray)."),
     ddim_steps: int = typer.Option(None, "--ddim-steps", min=1, max=100, help="DDIM steps per decision (default: the policy's own, 10 as DP3; 5 costs half and, on the shipped policy, +0.1 cm first-anchor error)."),
     samples: int = typer.Option(1, "--samples", min=1, max=64, help="Anchor sequences drawn per decision; their medoid is carried out (1: one sample, as the report)."),
 ) -> None:
@@ -346,7 +346,7 @@ app.add_typer(experiment_app, name="experiment")
 def anchors_vs_dense(
     config: Path = typer.Argument(Path("configs/experiment.yaml"), help="Experiment config (YAML): run, training, eval."),
     out: Path = typer.Option(Path("runs/anchors-vs-dense"), "--out", help="Experiment folder (re-running resumes it)."),
-    address: str = typer.Option(None, "--address", help="Ray cluster to join (default: a local Ray)."),
+    address: str = typer.Option(None, "--address", help="Ray cluster to join (default: $RAY_ADDRESS, else a local Ray)."),
 ) -> None:
     """Sparse anchors versus dense DP3-style frames at the same render budget: data, training and
     closed-loop evaluation of both; trajectories per budget, success per task, wall time per phase."""
@@ -363,7 +363,7 @@ def anchors_vs_dense(
 def recipe(
     config: Path = typer.Argument(Path("configs/recipe.yaml"), help="Recipe config (YAML): run, training, eval."),
     out: Path = typer.Option(Path("runs/recipe"), "--out", help="Recipe folder (re-running resumes it)."),
-    address: str = typer.Option(None, "--address", help="Ray cluster to join (default: a local Ray)."),
+    address: str = typer.Option(None, "--address", help="Ray cluster to join (default: $RAY_ADDRESS, else a local Ray)."),
     keep_outputs: bool = typer.Option(False, "--keep-outputs", help="Resume data that older code made (same config) instead of refusing."),
 ) -> None:
     """The best known recipe end to end: data, the three models, closed-loop evaluation on unseen

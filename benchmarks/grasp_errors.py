@@ -7,16 +7,17 @@ closes it.
 Runs closed-loop episodes of the single-arm place tasks as ``anchordp3 eval`` does (one process,
 through poses) and watches every decision (``stages.evaluate.evaluate_episode(watch=...)``):
 
-- at the first decision, whether the critical-object tokens found the object: the distance from
-  the object to the nearest of the two clusters' centroids (cm); over 5 cm means the segmenter
-  marked something else (a distractor) and the object was merged into another cluster;
+- at the first decision, whether the critical-object tokens found the object: the distance in the
+  table plane from the object to the nearest of the two clusters' centroids (cm); over 5 cm means
+  the segmenter marked something else (a distractor) and the object was merged into another
+  cluster;
 - at the first decision where the task arm's gripper is commanded from open to closed, the tool
   centre point against the expert's grasp pose of the object as it lies then
   (``task.grasp_pose()``): along the object's length and across it, and the height (cm), and the
   wrist's yaw error (degrees, modulo 180 for an elongated object, 0 for a round one).
 
-Each failed episode gets one cause, the first that holds: ``no_close`` (never closed), ``token``
-(the tokens missed the object), ``far`` (closed over 3 cm from the grasp point in the table
+Each failed episode gets one cause, the first that holds: ``token`` (the tokens missed the
+object), ``no_close`` (never closed), ``far`` (closed over 3 cm from the grasp point in the table
 plane), ``yaw`` (the wrist over 20 degrees off), else ``other`` (dropped, placed wrong, ...).
 Last line: ``RESULT success=K/N token=.. far=.. yaw=.. other=.. no_close=..`` (failures by cause).
 """

@@ -37,7 +37,7 @@ mapfile -t NODES < <(scontrol show hostnames "$SLURM_JOB_NODELIST")
 HEAD=${NODES[0]}
 HEAD_IP=${HEAD_IP:-$(srun --nodes=1 --ntasks=1 -w "$HEAD" hostname --ip-address | awk '{print $1}')}
 ADDRESS=$HEAD_IP:$PORT
-echo "ray head: $HEAD ($HEAD_IP:$PORT); workers: ${NODES[*]:1}"
+echo "ray head: $HEAD ($ADDRESS); workers: ${NODES[*]:1}"
 
 # --block keeps each `ray start` in the foreground of its srun step; the steps end with the job.
 srun --nodes=1 --ntasks=1 -w "$HEAD" --overlap \
@@ -49,7 +49,7 @@ for node in "${NODES[@]:1}"; do
   if [ "$HEAD_IP" = 127.0.0.1 ]; then NODE_IP=127.0.0.1
   else NODE_IP=$(srun --nodes=1 --ntasks=1 -w "$node" --overlap hostname --ip-address | awk '{print $1}'); fi
   srun --nodes=1 --ntasks=1 -w "$node" --overlap \
-    "$BIN/ray" start --address="$HEAD_IP:$PORT" --node-ip-address="$NODE_IP" --num-cpus="$CPUS" --block &
+    "$BIN/ray" start --address="$ADDRESS" --node-ip-address="$NODE_IP" --num-cpus="$CPUS" --block &
 done
 
 # wait until every node has joined (at most 5 minutes)

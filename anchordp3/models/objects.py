@@ -131,7 +131,7 @@ def principal_axis(centred: torch.Tensor, member: torch.Tensor, count: torch.Ten
 
 def token_gripper_offsets(tokens: torch.Tensor) -> torch.Tensor:
     """Each token's centroid minus each arm's end effector, back in metres: ``tokens (B, k,
-    TOKEN_FEATURES)`` -> ``(B, k, len(ARMS), 3)`` (0 for an absent object)."""
+    token_features(orientation))`` -> ``(B, k, len(ARMS), 3)`` (0 for an absent object)."""
     return tokens[..., 3:3 + 3 * len(ARMS)].unflatten(-1, (len(ARMS), 3)) / POSITION_SCALE
 
 

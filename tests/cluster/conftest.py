@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.cluster.helpers import LOOPBACK_ENV, TINY, cli, loopback_only
+from anchordp3.pipeline.report import dataset_content_hash
+from anchordp3.pipeline.runner import keep_ray_on_loopback
+from tests.cluster.helpers import LOOPBACK_ENV, TINY, cli
 
-loopback_only()  # before anything imports Ray's constants
-
-from anchordp3.pipeline.report import dataset_content_hash  # noqa: E402
+keep_ray_on_loopback()  # every Ray this process starts (the multi-node Cluster) keeps 127.0.0.1
 
 
 @pytest.fixture(scope="session")

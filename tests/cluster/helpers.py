@@ -1,32 +1,25 @@
 """What the cluster tests share: a tiny run config (3 logical CPUs of pools, so that every pool
-still fits once a 2-CPU worker node is gone) and helpers to start and stop processes by their
-own ids."""
+still fits once a 2-CPU worker node is gone), helpers to start and stop processes by their own
+ids, and a count of what a run has recorded."""
 
 from __future__ import annotations
 
 import os
 import signal
 import socket
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from anchordp3.pipeline.runner import LOOPBACK_ENV as LOOPBACK
-from anchordp3.pipeline.runner import keep_ray_on_loopback
-
+from anchordp3.pipeline import runner
+from anchordp3.pipeline.store import count_records
+from anchordp3.pipeline.work import DATA_STAGES, stage_dir
 
 REPO = Path(__file__).resolve().parents[2]
 # Every Ray these tests start keeps 127.0.0.1 (see ``runner.LOOPBACK_ENV``): this process's through
-# ``loopback_only``, the processes it starts through ``LOOPBACK_ENV`` in their environment. An address
-# given to ``ray.init`` needs it too: 127.0.0.1:PORT would otherwise be dialled at the routable address.
-LOOPBACK_ENV = {**os.environ, **LOOPBACK}
-
-
-def loopback_only() -> None:
-    """Make this process's Ray keep 127.0.0.1 as it is."""
-    keep_ray_on_loopback()
-
+# ``runner.keep_ray_on_loopback`` (called in conftest), the processes it starts through
+# ``LOOPBACK_ENV`` (this environment with Ray's switch set) given to them as their environment.
+LOOPBACK_ENV = {**os.environ, **runner.LOOPBACK_ENV}
 
 BIN = Path(sys.executable).parent  # the virtualenv's bin: anchordp3, ray
 POOLS = {"rollout": {"workers": 2, "cpus": 0.4}, "anchors": {"workers": 1, "cpus": 0.2}, "render": {"workers": 2, "cpus": 0.5},
@@ -70,12 +63,9 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def kill_group(proc: subprocess.Popen, sig: int = signal.SIGKILL) -> None:
-    """Signal the process group ``proc`` leads (started with ``start_new_session``), if it is up."""
-    try:
-        os.killpg(proc.pid, sig)
-    except ProcessLookupError:
-        pass
+def records_so_far(run: Path) -> int:
+    """Items recorded so far over the data stages of ``run`` (read while a run may be writing)."""
+    return sum(count_records(stage_dir(run, s)) for s in DATA_STAGES if stage_dir(run, s).exists())
 
 
 def pids_using(marker: str) -> list[int]:

@@ -13,7 +13,7 @@ import pytest
 from anchordp3.pipeline.report import dataset_content_hash
 from anchordp3.pipeline.store import count_records
 from anchordp3.pipeline.work import DATA_STAGES, stage_dir
-from tests.cluster.helpers import LOOPBACK_ENV, cli, short_tmp
+from tests.cluster.helpers import LOOPBACK_ENV, cli, records_so_far, short_tmp
 
 pytestmark = pytest.mark.cluster
 
@@ -43,7 +43,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_it_resumes_once_space_is_free
     assert len(lines) == 1 and lines[0].startswith("error: ") and str(small_disk) in lines[0], res.stderr[-3000:]
     assert "no space left on device" in lines[0]
     print(f"full: {lines[0]}")  # shown by `pytest -rA`: the closing note of a drill quotes it
-    recorded = sum(count_records(stage_dir(run, s)) for s in DATA_STAGES if stage_dir(run, s).exists())
+    recorded = records_so_far(run)
     verify = subprocess.run(cli("verify", str(run)), capture_output=True, text=True, timeout=300)
     assert verify.returncode == 0, verify.stdout + verify.stderr  # every output recorded done is whole
 

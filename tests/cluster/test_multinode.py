@@ -25,10 +25,9 @@ from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import count_records, read_manifest
 from anchordp3.pipeline.work import DATA_STAGES, stage_dir
 from anchordp3.schemas.run import RunConfig
+from tests.cluster.helpers import TINY, cli, records_so_far
 
 pytestmark = pytest.mark.cluster
-
-from tests.cluster.helpers import TINY, cli as _cli
 
 STAGES = ("rollout", "anchors", "render", "features", "write")
 CFG = RunConfig.model_validate(TINY)
@@ -85,25 +84,21 @@ def test_losing_a_worker_node_mid_run_loses_nothing(cluster, local_hash, tmp_pat
 
 
 def _driver(config_file: Path, run: Path, address: str) -> subprocess.Popen:
-    return subprocess.Popen(_cli("-q", "run", str(config_file), "--run-dir", str(run), "--address", address),
+    return subprocess.Popen(cli("-q", "run", str(config_file), "--run-dir", str(run), "--address", address),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-
-
-def _records(run: Path) -> int:
-    return sum(count_records(stage_dir(run, s)) for s in DATA_STAGES if stage_dir(run, s).exists())
 
 
 def test_the_driver_killed_mid_run_then_started_again_resumes_to_the_same_bytes(cluster, config_file, local_hash, tmp_path):
     driver = _driver(config_file, tmp_path, cluster.address)
-    while _records(tmp_path) < 6 and driver.poll() is None:
+    while records_so_far(tmp_path) < 6 and driver.poll() is None:
         time.sleep(0.2)
     assert driver.poll() is None, "the run ended before it could be killed"
     os.killpg(driver.pid, signal.SIGKILL)
     driver.wait()
-    done_before = _records(tmp_path)
+    done_before = records_so_far(tmp_path)
     again = _driver(config_file, tmp_path, cluster.address)
     assert again.wait(timeout=900) == 0, again.stderr.read().decode()[-2000:]
-    assert _records(tmp_path) >= done_before and dataset_content_hash(tmp_path) == local_hash
+    assert records_so_far(tmp_path) >= done_before and dataset_content_hash(tmp_path) == local_hash
 
 
 def test_twenty_sigkills_of_the_driver_at_random_instants_then_a_resume(cluster, config_file, local_hash, tmp_path):

@@ -16,9 +16,9 @@ import time
 import pytest
 
 from anchordp3.pipeline.report import dataset_content_hash
-from anchordp3.pipeline.store import count_records, read_manifest
+from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.work import DATA_STAGES, stage_dir
-from tests.cluster.helpers import BIN, LOOPBACK_ENV, REPO, free_port, kill_pids, own_token, pids_using, short_tmp
+from tests.cluster.helpers import BIN, LOOPBACK_ENV, REPO, free_port, kill_pids, own_token, pids_using, records_so_far, short_tmp
 
 pytestmark = pytest.mark.cluster
 
@@ -50,10 +50,6 @@ def _submit(head, name: str, config, run_dir) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
 
 
-def _records(run) -> int:
-    return sum(count_records(stage_dir(run, s)) for s in DATA_STAGES if stage_dir(run, s).exists())
-
-
 STOP = """
 import sys
 from ray.job_submission import JobStatus, JobSubmissionClient
@@ -76,12 +72,12 @@ def test_a_job_stopped_mid_run_then_submitted_again_resumes_to_the_local_bytes(h
     run = tmp_path / "run"
     first = _submit(head, "jobs-tiny", config_file, run)
     deadline = time.monotonic() + 600
-    while _records(run) < 6 and first.poll() is None and time.monotonic() < deadline:
+    while records_so_far(run) < 6 and first.poll() is None and time.monotonic() < deadline:
         time.sleep(0.5)
     assert first.poll() is None, f"the job ended before it could be stopped:\n{first.stdout.read()[-3000:]}"
     _stop_running_job(head, "jobs-tiny")
     first.wait(timeout=120)
-    done_before = _records(run)
+    done_before = records_so_far(run)
     assert done_before >= 6 and not read_manifest(stage_dir(run, "write")).complete
 
     time.sleep(1.1)  # submission ids carry the second
@@ -89,7 +85,7 @@ def test_a_job_stopped_mid_run_then_submitted_again_resumes_to_the_local_bytes(h
     out = again.communicate(timeout=1200)[0]
     assert again.returncode == 0 and "succeeded" in out, out[-3000:]
     print(f"stopped with {done_before} records; resumed: {dataset_content_hash(run)} (local run: {local_hash})")
-    assert _records(run) >= done_before and dataset_content_hash(run) == local_hash
+    assert records_so_far(run) >= done_before and dataset_content_hash(run) == local_hash
     records = {s: read_manifest(stage_dir(run, s)).items for s in DATA_STAGES}
 
     time.sleep(1.1)

@@ -60,6 +60,15 @@ def make_policy(seed: int = 0, target: str = "relative") -> AnchorDiffusionPolic
     return AnchorDiffusionPolicy(TINY.model_copy(update={"target": target}))
 
 
+def fitted_policy(batch: int = 2) -> tuple[AnchorDiffusionPolicy, dict[str, torch.Tensor]]:
+    """``make_policy()`` in eval mode with normalizers fitted on ``samples(batch)``, and that
+    batch's observation (points, state, task_id)."""
+    policy = make_policy().eval()
+    data = samples(batch)
+    policy.set_normalizers(stats_of(data))
+    return policy, {k: data[k] for k in ("points", "state", "task_id")}
+
+
 def test_relative_targets_round_trip_and_make_a_fixed_offset_a_constant() -> None:
     policy = make_policy()
     batch = samples(6)
@@ -139,10 +148,7 @@ def test_sampling_with_the_fast_kernels_gives_the_reference_kernels_anchors() ->
 
 
 def test_fewer_ddim_steps_can_be_asked_for_at_decision_time() -> None:
-    policy = make_policy().eval()
-    batch = samples(2)
-    policy.set_normalizers(stats_of(batch))
-    obs = {k: batch[k] for k in ("points", "state", "task_id")}
+    policy, obs = fitted_policy(2)
     three = policy.predict(obs, generator=torch.Generator().manual_seed(0), steps=3)
     assert three.shape == (2, 8, 32)
     assert not torch.equal(three, policy.predict(obs, generator=torch.Generator().manual_seed(0)))  # the config's 10
@@ -158,10 +164,7 @@ def test_the_medoid_is_the_sample_nearest_the_others_and_ignores_a_stray_one() -
 
 
 def test_several_samples_per_decision_return_the_medoid_of_the_single_samples_with_the_same_noise() -> None:
-    policy = make_policy().eval()
-    batch = samples(2)
-    policy.set_normalizers(stats_of(batch))
-    obs = {k: batch[k] for k in ("points", "state", "task_id")}
+    policy, obs = fitted_policy(2)
     one = {k: v[1:] for k, v in obs.items()}
     four = {k: v.repeat_interleave(4, 0) for k, v in one.items()}
     singles = policy.predict(four, generator=torch.Generator().manual_seed(3))  # one per noise draw, (4, 8, 32)
