@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from anchordp3.geometry.features import knn
+from anchordp3.geometry.features import NeighbourTree, knn
 
 
 def reference_normals(points: np.ndarray, k: int = 16, viewpoint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -23,7 +23,7 @@ def reference_normals(points: np.ndarray, k: int = 16, viewpoint: np.ndarray | N
     given; neighbour indices (M, k) int64, nearest first.
     """
     p = np.asarray(points, dtype=np.float64)
-    nbr = knn(p, k, tree=cKDTree(p))  # ties broken by index, as in the fast path
+    nbr = knn(p, k, tree=NeighbourTree(p, scipy=True))  # scipy's tree; ties broken by index, as in the fast path
     x = p[nbr]  # (M, k, 3)
     x -= x.mean(axis=1, keepdims=True)
     cov = x.transpose(0, 2, 1) @ x / k  # (M, 3, 3)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from anchordp3.geometry.features import (
+    NeighbourTree,
     _smallest_eigenvectors,
     curvature_features,
     knn,
@@ -119,6 +120,28 @@ def test_knn_includes_self_first_and_caps_k() -> None:
     np.testing.assert_array_equal(nbr[:, 0], np.arange(50))
     np.testing.assert_array_equal(knn(points, 8, query_idx=np.array([7, 3])), nbr[[7, 3]])
     assert knn(points[:5], 16).shape == (5, 5)
+
+
+def grid_cloud() -> np.ndarray:
+    """A rendered-depth-like cloud: two 40 x 30 pixel grids 2 mm apart, one in a tilted view,
+    and a few exact duplicates: many equidistant neighbours, inside the k and at its edge."""
+    u, v = np.meshgrid(np.arange(40) * 0.002, np.arange(30) * 0.002)
+    flat = np.column_stack([u.ravel(), v.ravel(), np.full(u.size, 0.75)])
+    tilted = flat @ np.array([[1, 0, 0], [0, 0.8, 0.6], [0, -0.6, 0.8]]) + [0.03, 0.01, 0.0]
+    points = np.concatenate([flat, tilted, flat[::97]]).astype(np.float32)
+    return points
+
+
+@pytest.mark.parametrize("cloud", ["grid", "box"])
+def test_knn_rows_do_not_depend_on_which_tree_answered(cloud) -> None:
+    points = grid_cloud() if cloud == "grid" else scene("box")[0]
+    ours, scipys = knn(points, 16), knn(points, 16, tree=NeighbourTree(points, scipy=True))
+    np.testing.assert_array_equal(ours, scipys)
+    dist = np.linalg.norm(points[ours].astype(np.float64) - points[ours[:, :1]], axis=-1)
+    assert np.all(np.diff(dist, axis=1) >= 0)  # nearest first
+    tied = np.diff(dist, axis=1) == 0
+    assert tied.any() if cloud == "grid" else True
+    assert np.all(np.diff(ours, axis=1)[tied] > 0)  # equidistant neighbours by index
 
 
 def test_building_blocks_match_reference_on_every_point() -> None:

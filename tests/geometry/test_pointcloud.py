@@ -139,3 +139,12 @@ def test_table_top_is_the_densest_horizontal_slab_under_objects_and_walls() -> N
     cloud = rng.permutation(np.concatenate([table, box, wall, front]))
     assert abs(table_top_height(cloud) - 0.7213) < 1e-6
     assert table_top_height(np.zeros((0, 3))) is None
+
+
+def test_slab_counts_are_numpys_histogram_counts() -> None:
+    from anchordp3.geometry.pointcloud import slab_counts
+    rng = np.random.default_rng(0)
+    z = np.round(rng.normal(0.75, 0.05, 20000), 3).astype(np.float32).astype(np.float64)  # many values on the edges
+    edges = np.arange(z.min(), z.max() + 2 * 0.002, 0.002)
+    z = np.concatenate([z, edges[[0, 5, -1]]])  # the first, an inner and the last edge itself
+    np.testing.assert_array_equal(slab_counts(z, edges), np.histogram(z, bins=edges)[0])
