@@ -354,6 +354,13 @@ class Runner:
         status, halted = stores[prev].status, self.halted[prev]
         return sum(1 for ep in self.episodes if status.get(eid := episode_id(*ep)) == "done" and eid not in halted)
 
+    def _recorded(self, stores: dict[str, ManifestStore], s: str) -> int:
+        """Items of this run's plan that stage ``s`` has a record of (not those of a run with more seeds)."""
+        status = stores[s].status
+        if self.group is not None and s == self.group.name:
+            return sum(1 for k in range(len(self.plan)) if _group_id(k) in status)
+        return sum(1 for ep in self.episodes if episode_id(*ep) in status)
+
     def _complete(self, stores: dict[str, ManifestStore], s: str) -> bool:
         if self.group is not None and s == self.group.name:
             if self.group.finish:
@@ -554,7 +561,7 @@ class Runner:
         lines = []
         for s in self.enabled:
             total = len(self.plan) if self.group is not None and s == self.group.name else self._planned(stores, s)
-            already = len(stores[s].status) - self.stats.done[s] - self.stats.failed[s]
+            already = self._recorded(stores, s) - self.stats.done[s] - self.stats.failed[s]
             lines.append(self.stats.line(s, total, already))
         log.info(" | ".join(lines))
 

@@ -66,6 +66,16 @@ def test_rerunning_a_finished_run_redoes_nothing(reference):
     assert dataset_content_hash(run) == h
 
 
+def test_a_run_of_fewer_seeds_counts_only_its_own_episodes_in_its_progress(reference, tmp_path, caplog):
+    import shutil
+    run = tmp_path / "run"
+    shutil.copytree(reference[0], run)
+    with caplog.at_level("INFO", logger="anchordp3.pipeline.runner"):
+        run_pipeline(tiny(seeds="0"), run, RunOptions(progress_interval=0.01, from_stage="write"))
+    lines = [r.getMessage() for r in caplog.records if "rollout:" in r.getMessage()]
+    assert lines and all("rollout: 2/2 done" in line and "anchors: 2/2 done" in line for line in lines), lines[-1]
+
+
 def _records(run: Path, stage: str) -> int:
     try:
         return count_records(stage_dir(run, stage))
