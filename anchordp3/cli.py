@@ -384,15 +384,16 @@ app.add_typer(export_app, name="export")
 @export_app.command("pretrained")
 @cli_errors
 def export_pretrained(
-    run_dir: Path = typer.Argument(..., help="Run directory with trained models (e.g. a recipe's run/)."),
+    run_dir: Path = typer.Argument(..., help="Run directory with trained models (e.g. a recipe's run/), or a shipped models folder to ship again."),
     dest: Path = typer.Option(None, "--dest", help="Destination folder (default: the package's pretrained/, what `--models pretrained` loads)."),
     command: str = typer.Option("", "--command", help="The command that made the models, recorded beside them."),
+    ddim_steps: int = typer.Option(None, "--ddim-steps", min=1, max=100, help="DDIM steps per decision of the shipped policy (default: the ones it was trained with)."),
 ) -> None:
     """Ship a run's three models as a self-contained models folder (EMA policy weights, the
     classifier's changed tensors only), with their manifests, training config and run config."""
     from anchordp3.pipeline.shipping import ship_models
 
-    typer.echo(ship_models(run_dir, dest, command))
+    typer.echo(ship_models(run_dir, dest, command, ddim_steps))
 
 
 @export_app.command("lerobot")

@@ -33,6 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from anchordp3.pipeline.noop import noop_graph  # noqa: E402
+from anchordp3 import logs  # noqa: E402
 from anchordp3.pipeline.runner import RunOptions, ensure_ray, run_pipeline  # noqa: E402
 from anchordp3.pipeline.store import MANIFEST, ManifestStore, read_summary  # noqa: E402
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord, StageManifest  # noqa: E402
@@ -59,7 +60,7 @@ def driver_run(episodes: int, workdir: Path) -> dict:
     graph = noop_graph()
     ensure_ray(None, cfg, graph)  # Ray's start is not the driver's per-item cost
     t_cpu, t_wall = time.process_time(), time.perf_counter()
-    counts = run_pipeline(cfg, workdir / "run", RunOptions(progress_interval=30), say=lambda m: print(m, file=sys.stderr), graph=graph)
+    counts = run_pipeline(cfg, workdir / "run", RunOptions(progress_interval=30), graph=graph)
     cpu, wall = time.process_time() - t_cpu, time.perf_counter() - t_wall
     item_stages = sum(c["done"] + c["failed"] for c in counts.values())
     return {"episodes": per_task * len(TASKS), "item_stages": item_stages, "cpu_s": cpu, "wall_s": wall,
@@ -115,6 +116,7 @@ def main() -> int:
     parser.add_argument("--episodes", type=int, default=100_000, help="episodes of the no-op run")
     parser.add_argument("--records", type=int, default=1_000_000, help="records of the large manifest")
     args = parser.parse_args()
+    logs.console()  # progress lines on stderr
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         run = driver_run(args.episodes, work)

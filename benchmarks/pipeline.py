@@ -22,6 +22,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from anchordp3.dataset.reader import open_dataset  # noqa: E402
+from anchordp3 import logs  # noqa: E402
 from anchordp3.pipeline.runner import RunOptions, run_pipeline  # noqa: E402
 from anchordp3.pipeline.store import read_manifest  # noqa: E402
 from anchordp3.pipeline.work import DATA_STAGES, stage_dir  # noqa: E402
@@ -35,13 +36,14 @@ def main() -> int:
     parser.add_argument("--seeds", default=None, help="override the config's seeds")
     parser.add_argument("--workers", type=int, default=None, help="actors per stage pool (default: the config's)")
     args = parser.parse_args()
+    logs.console()  # progress lines on stderr
     cfg = load_run_config(args.config)
     if args.seeds:
         cfg = cfg.model_copy(update={"seeds": args.seeds})
     with tempfile.TemporaryDirectory() as d:
         run = Path(d) / "run"
         t0 = time.perf_counter()
-        run_pipeline(cfg, run, RunOptions(workers=args.workers, progress_interval=30), say=lambda m: print(m, file=sys.stderr))
+        run_pipeline(cfg, run, RunOptions(workers=args.workers, progress_interval=30))
         wall = time.perf_counter() - t0
         rows, total, seconds = [], 0.0, {}
         for s in DATA_STAGES:

@@ -36,7 +36,8 @@ def run_recipe(out: Path, cfg: RecipeConfig, address: str | None = None,
     clock.timed(GROUP, "data", lambda: run_pipeline(cfg.run, run, RunOptions(address=address, keep_outputs=keep_outputs)))
     clock.timed(GROUP, "train", lambda: train_models(run, MODELS, cfg.training))
     e = cfg.eval
-    base = dict(workers=e.workers, max_decisions=e.max_decisions, through=e.through, samples=e.samples, address=address)
+    base = dict(workers=e.workers, max_decisions=e.max_decisions, through=e.through, samples=e.samples, ddim_steps=e.ddim_steps,
+                address=address)
     unseen = clock.timed(GROUP, "eval", lambda: run_evaluation(run, EvalOptions(episodes=e.episodes, out=out / "eval", **base), cfg.run))
     seen: list[dict] = []
     if e.train_episodes:

@@ -37,10 +37,14 @@ def half_weights(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {k: v.half() if v.dtype == torch.float32 and v.numel() >= HALF_MIN_NUMEL else v for k, v in state.items()}
 
 
-def slim_checkpoint(name: str, path: Path) -> bytes:
+def slim_checkpoint(name: str, path: Path, ddim_steps: int | None = None) -> bytes:
     """``model.pt`` bytes of model ``name`` without what evaluation never reads: the policy's raw
-    (non-EMA) weights are its EMA ones, and large weights are stored in float16."""
+    (non-EMA) weights are its EMA ones, and large weights are stored in float16. ``ddim_steps``:
+    the policy's DDIM steps per decision (its config's ``scheduler.num_inference_steps``; None
+    keeps the ones it was trained and validated with)."""
     ckpt = load_checkpoint(path)
+    if name == "policy" and ddim_steps is not None:
+        ckpt["config"]["scheduler"]["num_inference_steps"] = ddim_steps
     if "weights_dir" in ckpt:  # checkpoints of older code recorded the resolved (machine) path
         ckpt["weights_dir"] = ckpt.get("config", {}).get("weights_dir")
     for key in ("state_dict", "ema_state_dict"):
@@ -53,30 +57,49 @@ def slim_checkpoint(name: str, path: Path) -> bytes:
     return buf.getvalue()
 
 
-def ship_models(run_dir: Path, dest: Path | None = None, command: str = "") -> str:
-    """Copy the run's three trained models into ``dest`` (default: the package's ``pretrained/``);
-    returns a one-line summary. Raises FileNotFoundError naming a model that is not trained."""
+def shipped_folder(path: Path) -> bool:
+    """Whether ``path`` is a shipped models folder (``MODEL/model.pt`` and ``run_config.yaml``), not a run."""
+    return (Path(path) / RUN_CONFIG_FILE).is_file() and all((Path(path) / m / "model.pt").is_file() for m in MODELS)
+
+
+def _source(src: Path, name: str) -> tuple[Path, Path]:
+    """``(model.pt, folder of its manifest and training config)`` of model ``name`` in a run or a
+    shipped models folder; FileNotFoundError naming a model the run has not trained."""
+    if shipped_folder(src):
+        return src / name / "model.pt", src / name
+    found = trained_model(src, name)
+    if found is None:
+        raise FileNotFoundError(f"{model_dir(src, name)}: no trained {name}; run `anchordp3 train all --run-dir {src}`")
+    return found[0], model_dir(src, name)
+
+
+def ship_models(run_dir: Path, dest: Path | None = None, command: str = "", ddim_steps: int | None = None) -> str:
+    """Copy the three trained models of a run, or of a shipped models folder (to ship them again,
+    e.g. with other DDIM steps), into ``dest`` (default: the package's ``pretrained/``); returns a
+    one-line summary. ``ddim_steps``: the shipped policy's DDIM steps per decision (None: its own).
+    Raises FileNotFoundError naming a model that is not trained."""
     run_dir, dest = Path(run_dir), Path(dest) if dest is not None else PRETRAINED_DIR
     tmp = dest.with_name(f".{dest.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     sizes = {}
     for name in MODELS:
-        found = trained_model(run_dir, name)
-        if found is None:
-            raise FileNotFoundError(f"{model_dir(run_dir, name)}: no trained {name}; run `anchordp3 train all --run-dir {run_dir}`")
-        blob = slim_checkpoint(name, found[0])
+        model_pt, folder = _source(run_dir, name)
+        blob = slim_checkpoint(name, model_pt, ddim_steps)
         atomic_write_bytes(tmp / name / "model.pt", blob)
-        manifest = read_manifest(model_dir(run_dir, name))  # shipped as JSON, every record inline (a format read_manifest reads)
+        manifest = read_manifest(folder)  # shipped as JSON, every record inline (a format read_manifest reads)
         atomic_write_bytes(tmp / name / MANIFEST, manifest.model_dump_json(indent=1).encode())
-        src = model_dir(run_dir, name) / TRAINING_FILE
-        if src.is_file():
-            atomic_write_bytes(tmp / name / TRAINING_FILE, src.read_bytes())
+        if (folder / TRAINING_FILE).is_file():
+            atomic_write_bytes(tmp / name / TRAINING_FILE, (folder / TRAINING_FILE).read_bytes())
         sizes[name] = len(blob)
-    atomic_write_bytes(tmp / RUN_CONFIG_FILE, (run_dir / "config.yaml").read_bytes())
+    run_config = run_dir / RUN_CONFIG_FILE if shipped_folder(run_dir) else run_dir / "config.yaml"
+    atomic_write_bytes(tmp / RUN_CONFIG_FILE, run_config.read_bytes())
     total = sum(sizes.values())
-    lines = ["# Shipped models", "", f"From the run `{run_dir.name}`" + (f", made by `{command}`." if command else "."), "",
+    steps = load_checkpoint(tmp / "policy" / "model.pt")["config"]["scheduler"]["num_inference_steps"]
+    origin = f"From the {'models folder' if shipped_folder(run_dir) else 'run'} `{run_dir.name}`"
+    lines = ["# Shipped models", "", origin + (f", made by `{command}`." if command else "."), "",
              "| model | model.pt MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.2f} |" for k, v in sizes.items()] + \
-            ["", f"In all {total / 1e6:.2f} MB. `run_config.yaml` is the data config they were trained on.", ""]
+            ["", f"In all {total / 1e6:.2f} MB. `run_config.yaml` is the data config they were trained on. "
+             f"The policy decides with {steps} DDIM steps.", ""]
     atomic_write_bytes(tmp / SHIPPED_FILE, "\n".join(lines).encode())
     if dest.exists():
         old = dest.with_name(f".{dest.name}.old")

@@ -24,6 +24,7 @@ class RecipeEvalConfig(BaseModel):
     max_decisions: int | None = Field(default=None, ge=1, description="Cap on policy calls per episode (None: only the task's step limit).")
     through: Literal["pose", "joints"] = Field(default="pose", description="Carry out an anchor through its end-effector poses (IK) or its joint angles (the report).")
     samples: int = Field(default=1, ge=1, le=64, description="Anchor sequences drawn per decision, their medoid carried out (1: one sample, as the report).")
+    ddim_steps: int | None = Field(default=None, ge=1, le=100, description="DDIM steps per decision (None: the policy's own, its config's scheduler.num_inference_steps).")
 
 
 class RecipeConfig(BaseModel):
