@@ -56,16 +56,12 @@ class SequenceConv1d(nn.Conv1d):
     def _tap_weight(self, lo: int, hi: int) -> torch.Tensor:
         """The weight of taps ``lo..hi-1`` as ``(C_out, C_in * taps)``. On a sequence shorter than
         the kernel the outer taps only ever meet the zero padding (T = 2, kernel 5: two of five), so
-        they are left out of the product, which is bound by reading the weight from memory; the
-        sliced copy is kept until the weight changes."""
+        they are left out of the product, which is bound by reading the weight from memory. Sliced
+        at every call: a cached copy would go stale when the weights change through ``.data``
+        (as an EMA update does), which no version counter sees."""
         if (lo, hi) == (0, self.kernel_size[0]):
             return self.weight.reshape(self.out_channels, -1)
-        key = (lo, hi, self.weight._version, self.weight.data_ptr())
-        cached = getattr(self, "_taps", None)
-        if cached is None or cached[0] != key:
-            cached = (key, self.weight[:, :, lo:hi].reshape(self.out_channels, -1).contiguous())
-            self._taps = cached
-        return cached[1]
+        return self.weight[:, :, lo:hi].reshape(self.out_channels, -1)
 
 
 class SequenceConvTranspose1d(nn.ConvTranspose1d):

@@ -98,7 +98,7 @@ def test_the_convolutions_sliced_weight_follows_a_changed_weight() -> None:
     x = torch.randn(1, 4, 2)
     with torch.no_grad():
         conv(x)
-        conv.weight.mul_(2.0)  # as an optimizer step or load_state_dict would
+        conv.weight.data.mul_(2.0)  # as an EMA update does: through .data, unseen by the version counter
         torch.testing.assert_close(conv(x), F.conv1d(x, conv.weight, conv.bias, 1, 2), atol=1e-5, rtol=1e-5)
 
 
