@@ -33,6 +33,13 @@ class SinusoidalStepEmbedding(nn.Module):
         return torch.cat([angles.sin(), angles.cos()], dim=-1)
 
 
+def _cpu_inference(conv: nn.Conv1d | nn.ConvTranspose1d, x: torch.Tensor) -> bool:
+    """Whether ``conv`` may run its matrix-product path on ``x``: fast kernels on, no gradients, CPU,
+    and a plain convolution (one group, no dilation, zero padding)."""
+    return fast_kernels() and not torch.is_grad_enabled() and x.device.type == "cpu" and conv.groups == 1 \
+        and conv.dilation == (1,) and conv.padding_mode == "zeros"
+
+
 class SequenceConv1d(nn.Conv1d):
     """``nn.Conv1d`` (same parameters, same checkpoints) that, for inference on the CPU, runs as one
     matrix product over the unfolded sequence: on the U-Net's short sequences (T <= 8 at batch 1)
@@ -41,8 +48,7 @@ class SequenceConv1d(nn.Conv1d):
     x: (B, C_in, T) -> (B, C_out, T_out)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if not fast_kernels() or torch.is_grad_enabled() or x.device.type != "cpu" or self.groups != 1 or self.dilation != (1,) or \
-                self.padding_mode != "zeros" or not isinstance(self.padding, tuple):
+        if not _cpu_inference(self, x) or not isinstance(self.padding, tuple):
             return super().forward(x)
         (k,), (stride,), (pad,) = self.kernel_size, self.stride, self.padding
         cols = F.pad(x, (pad, pad)).unfold(2, k, stride)  # (B, C_in, T_out, k)
@@ -71,8 +77,7 @@ class SequenceConvTranspose1d(nn.ConvTranspose1d):
     x: (B, C_in, T) -> (B, C_out, T_out)."""
 
     def forward(self, x: torch.Tensor, output_size: list[int] | None = None) -> torch.Tensor:
-        if not fast_kernels() or torch.is_grad_enabled() or x.device.type != "cpu" or self.groups != 1 or self.dilation != (1,) or \
-                self.padding_mode != "zeros" or output_size is not None or self.output_padding != (0,):
+        if not _cpu_inference(self, x) or output_size is not None or self.output_padding != (0,):
             return super().forward(x, output_size)
         (k,), (stride,), (pad,) = self.kernel_size, self.stride, self.padding
         b, _, t = x.shape

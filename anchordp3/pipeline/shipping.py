@@ -37,11 +37,11 @@ def half_weights(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {k: v.half() if v.dtype == torch.float32 and v.numel() >= HALF_MIN_NUMEL else v for k, v in state.items()}
 
 
-def slim_checkpoint(name: str, path: Path, ddim_steps: int | None = None) -> bytes:
-    """``model.pt`` bytes of model ``name`` without what evaluation never reads: the policy's raw
-    (non-EMA) weights are its EMA ones, and large weights are stored in float16. ``ddim_steps``:
-    the policy's DDIM steps per decision (its config's ``scheduler.num_inference_steps``; None
-    keeps the ones it was trained and validated with)."""
+def slim_checkpoint(name: str, path: Path, ddim_steps: int | None = None) -> tuple[bytes, dict]:
+    """``model.pt`` bytes of model ``name`` without what evaluation never reads (the policy's raw
+    (non-EMA) weights are its EMA ones, and large weights are stored in float16), and the model's
+    config as shipped. ``ddim_steps``: the policy's DDIM steps per decision (its config's
+    ``scheduler.num_inference_steps``; None keeps the ones it was trained and validated with)."""
     ckpt = load_checkpoint(path)
     if name == "policy" and ddim_steps is not None:
         ckpt["config"]["scheduler"]["num_inference_steps"] = ddim_steps
@@ -54,7 +54,7 @@ def slim_checkpoint(name: str, path: Path, ddim_steps: int | None = None) -> byt
         ckpt["state_dict"] = ckpt["ema_state_dict"]  # the same tensors: stored once
     buf = io.BytesIO()
     torch.save(ckpt, buf)
-    return buf.getvalue()
+    return buf.getvalue(), ckpt.get("config", {})
 
 
 def shipped_folder(path: Path) -> bool:
@@ -62,10 +62,10 @@ def shipped_folder(path: Path) -> bool:
     return (Path(path) / RUN_CONFIG_FILE).is_file() and all((Path(path) / m / "model.pt").is_file() for m in MODELS)
 
 
-def _source(src: Path, name: str) -> tuple[Path, Path]:
-    """``(model.pt, folder of its manifest and training config)`` of model ``name`` in a run or a
-    shipped models folder; FileNotFoundError naming a model the run has not trained."""
-    if shipped_folder(src):
+def _source(src: Path, name: str, shipped: bool) -> tuple[Path, Path]:
+    """``(model.pt, folder of its manifest and training config)`` of model ``name`` in a run or
+    (``shipped``) a shipped models folder; FileNotFoundError naming a model the run has not trained."""
+    if shipped:
         return src / name / "model.pt", src / name
     found = trained_model(src, name)
     if found is None:
@@ -81,21 +81,22 @@ def ship_models(run_dir: Path, dest: Path | None = None, command: str = "", ddim
     run_dir, dest = Path(run_dir), Path(dest) if dest is not None else PRETRAINED_DIR
     tmp = dest.with_name(f".{dest.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    sizes = {}
+    shipped = shipped_folder(run_dir)
+    sizes, configs = {}, {}
     for name in MODELS:
-        model_pt, folder = _source(run_dir, name)
-        blob = slim_checkpoint(name, model_pt, ddim_steps)
+        model_pt, folder = _source(run_dir, name, shipped)
+        blob, configs[name] = slim_checkpoint(name, model_pt, ddim_steps)
         atomic_write_bytes(tmp / name / "model.pt", blob)
         manifest = read_manifest(folder)  # shipped as JSON, every record inline (a format read_manifest reads)
         atomic_write_bytes(tmp / name / MANIFEST, manifest.model_dump_json(indent=1).encode())
         if (folder / TRAINING_FILE).is_file():
             atomic_write_bytes(tmp / name / TRAINING_FILE, (folder / TRAINING_FILE).read_bytes())
         sizes[name] = len(blob)
-    run_config = run_dir / RUN_CONFIG_FILE if shipped_folder(run_dir) else run_dir / "config.yaml"
+    run_config = run_dir / RUN_CONFIG_FILE if shipped else run_dir / "config.yaml"
     atomic_write_bytes(tmp / RUN_CONFIG_FILE, run_config.read_bytes())
     total = sum(sizes.values())
-    steps = load_checkpoint(tmp / "policy" / "model.pt")["config"]["scheduler"]["num_inference_steps"]
-    origin = f"From the {'models folder' if shipped_folder(run_dir) else 'run'} `{run_dir.name}`"
+    steps = configs["policy"]["scheduler"]["num_inference_steps"]
+    origin = f"From the {'models folder' if shipped else 'run'} `{run_dir.name}`"
     lines = ["# Shipped models", "", origin + (f", made by `{command}`." if command else "."), "",
              "| model | model.pt MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.2f} |" for k, v in sizes.items()] + \
             ["", f"In all {total / 1e6:.2f} MB. `run_config.yaml` is the data config they were trained on. "
