@@ -166,10 +166,8 @@ def point_features(
 ) -> tuple[np.ndarray, np.ndarray]:
     """FPS-downsample a cloud and compute the 11-d features of the samples only.
 
-    Normals are computed for the samples and their K neighbours (what the samples' curvature
-    needs), or for every point at once when the samples' neighbourhoods can cover the cloud
-    (n_samples * K >= M), curvature for the samples; results equal the whole-cloud computation at
-    those points.
+    Normals are computed for the samples and their K neighbours only (what the samples' curvature
+    needs), curvature for the samples; results equal the whole-cloud computation at those points.
 
     points: (M, 3) float, metres, M >= 1.
     colors: (M, 3) float in [0, 1].
@@ -193,15 +191,12 @@ def point_features(
     idx = farthest_point_sample(points, n_samples, start)
 
     tree = NeighbourTree(points)
-    if len(idx) * k >= len(points):  # the samples' neighbourhoods cover most of the cloud: every point at once
-        every = knn(points, k, None, tree)  # (M, K)
-        normals = normals_pca(points, every, viewpoint)  # (M, 3)
-        local = every[idx]  # the samples' own rows
-    else:
-        sample_nbrs = knn(points, k, idx, tree)  # (n, K)
-        needed, local = np.unique(sample_nbrs, return_inverse=True)  # index order: the views' pixel order, spatially coherent
-        normals = normals_pca(points, knn(points, k, needed, tree), viewpoint)  # (U, 3)
-        local = local.reshape(sample_nbrs.shape)
+    # Normals only where the samples' curvature needs them: even when n * K exceeds M the union of
+    # the samples' neighbourhoods is 50-70 % of a rendered cloud (measured), so this beats every point.
+    sample_nbrs = knn(points, k, idx, tree)  # (n, K)
+    needed, local = np.unique(sample_nbrs, return_inverse=True)  # index order: the views' pixel order, spatially coherent
+    normals = normals_pca(points, knn(points, k, needed, tree), viewpoint)  # (U, 3)
+    local = local.reshape(sample_nbrs.shape)
     curvature = curvature_features(normals, local, eps)  # row i: neighbourhood of sample i
     feats = np.concatenate([points[idx], colors[idx], normals[local[:, 0]], curvature], axis=1)
     return idx, feats.astype(np.float32)

@@ -5,7 +5,8 @@ Observation: ``points (B, N, 12)`` (11 features + critical probability), ``state
 effector (``gripper_offsets``) before the per-point MLP; with ``object_tokens`` the critical points'
 K clusters (``models.objects``) add their own feature to the condition, and with ``anchored_offsets``
 their offsets from each end effector, gated by the condition, are added to the denoiser's clean
-sample where it holds end-effector positions (``anchored_shift``). The task's own point encoder and the state MLP give the FiLM condition of one
+sample where it holds end-effector positions (``anchored_shift``; with ``gate_supervision`` the gates
+also learn which object each labelled anchor lies by, ``gate_loss``). The task's own point encoder and the state MLP give the FiLM condition of one
 shared conditional 1-D U-Net, which denoises the ``(B, H, 32)`` anchor sequence with diffusers'
 ``DDIMScheduler`` (DP3's settings: 100 training steps, squaredcos_cap_v2, clip_sample,
 prediction_type ``sample``, 10 inference steps). Training loss: MSE over all H x 32 elements of the
@@ -26,7 +27,7 @@ from anchordp3.models.device import autocast
 from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
 from anchordp3.models.kernels import fast_kernels
 from anchordp3.models.normalizer import MinMaxNormalizer
-from anchordp3.models.objects import ObjectTokenEncoder, object_tokens, token_features, token_gripper_offsets
+from anchordp3.models.objects import ObjectTokenEncoder, nearest_token_gates, object_tokens, token_features, token_gripper_offsets
 from anchordp3.models.unet1d import ConditionalUnet1D
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
@@ -146,17 +147,22 @@ class AnchorDiffusionPolicy(nn.Module):
             parts.append(self.object_encoder(tokens.to(parts[0].dtype)))
         return torch.cat(parts, dim=-1), tokens
 
+    def gates(self, cond: torch.Tensor) -> torch.Tensor:
+        """The anchored offsets' gates, a linear function of ``cond (B, cond_dim)``: ``(B, H, arms,
+        object_tokens)`` float32, one per (horizon slot, arm in ``ARMS`` order, object token)."""
+        return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.config.object_tokens)
+
     def anchored_shift(self, cond: torch.Tensor, tokens: torch.Tensor | None) -> torch.Tensor:
         """What ``anchored_offsets`` adds to the denoiser's clean sample, ``(B, H, D)`` in normalised
         target units (0 without it): in arm a's end-effector xyz of slot h, ``sum_k gate[h, a, k] *
-        (centroid_k - ee_a)`` (metres, the tokens' offsets; an absent object offers 0), the gates a
-        linear function of ``cond (B, cond_dim)``, scaled as the relative-target normaliser scales
-        those dims."""
+        (centroid_k - ee_a)`` (metres, the tokens' offsets; an absent object offers 0), the gates
+        (``gates``) a linear function of ``cond (B, cond_dim)``, scaled as the relative-target
+        normaliser scales those dims."""
         h, d = self.config.horizon, self.config.action_dim
         shift = cond.new_zeros((cond.shape[0], h, d), dtype=torch.float32)
         if self.anchor_gates is None or tokens is None:
             return shift
-        gates = self.anchor_gates(cond.float()).view(-1, h, len(ARMS), self.config.object_tokens)
+        gates = self.gates(cond)
         offsets = token_gripper_offsets(tokens.float())  # (B, K, arms, 3) metres
         for a, arm in enumerate(ARMS):
             shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a], offsets[:, :, a])
@@ -177,7 +183,16 @@ class AnchorDiffusionPolicy(nn.Module):
             cond, tokens = self._condition(batch)
             pred = self.unet(noisy, steps, cond)
         target = x0 if self.config.scheduler.prediction_type == "sample" else noise
-        return F.mse_loss(pred.float() + self.anchored_shift(cond, tokens), target)
+        loss = F.mse_loss(pred.float() + self.anchored_shift(cond, tokens), target)
+        if self.config.gate_supervision and tokens is not None:
+            loss = loss + self.config.gate_supervision * self.gate_loss(cond, tokens, anchors)
+        return loss
+
+    def gate_loss(self, cond: torch.Tensor, tokens: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
+        """MSE between the gates (``gates``) and which object each labelled end-effector position
+        belongs to (``nearest_token_gates`` within ``gate_radius``): ``anchors (B, H, D)`` data units."""
+        positions = torch.stack([anchors[:, :, self.layout.ee_xyz(arm)] for arm in ARMS], dim=2)  # (B, H, arms, 3)
+        return F.mse_loss(self.gates(cond), nearest_token_gates(positions, tokens, self.config.gate_radius))
 
     @torch.no_grad()
     def predict(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None,

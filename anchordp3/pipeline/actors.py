@@ -41,7 +41,7 @@ def parse_faults(text: str) -> dict[tuple[str, str], tuple[int, bool]]:
 
 
 class ItemResult(NamedTuple):
-    """What a worker sends back for one item: its output and compute seconds, or (``output``
+    """What a worker sends back for one item: its output, wall and CPU seconds, or (``output``
     None) the exception's type and last line; and the messages logged while it ran."""
 
     output: StageOutput | None
@@ -50,6 +50,7 @@ class ItemResult(NamedTuple):
     detail: str = ""
     logs: tuple[WorkerRecord, ...] = ()
     node: str | None = None  # the Ray node the worker runs on (``node_id``)
+    cpu_seconds: float | None = None  # the worker process's CPU time (all its threads) for the item
 
 
 def node_id() -> str:
@@ -71,17 +72,18 @@ class StageWorker:
         self.cfg = RunConfig.model_validate_json(cfg_json)
         self.faults = parse_faults(faults)
 
-    def run(self, item_id: str, item, attempt: int) -> tuple[StageOutput, float]:
-        """Do one item (an ``EpisodeItem`` or ``GroupItem``): its output and compute seconds.
-        Raises whatever the stage raises."""
+    def run(self, item_id: str, item, attempt: int) -> tuple[StageOutput, float, float]:
+        """Do one item (an ``EpisodeItem`` or ``GroupItem``): its output, wall seconds and CPU
+        seconds (this process, every thread: a renderer's worker threads count too, so the CPU
+        time is the item's cost whatever else shares the machine). Raises whatever the stage raises."""
         n, crash = self.faults.get((self.stage.name, item_id), (0, False))
         if attempt <= n:
             if crash:
                 os._exit(1)
             raise InjectedFault(f"injected fault in {self.stage.name} {item_id} (attempt {attempt})")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = self.stage.run(self.run_dir, self.cfg, item)
-        return out, time.perf_counter() - t0
+        return out, time.perf_counter() - t0, time.process_time() - c0
 
     def run_many(self, calls: list[tuple[str, object, int]]) -> list[ItemResult]:
         """Do each ``(item id, item, attempt)`` in turn (an item that raises does not stop the
@@ -90,8 +92,8 @@ class StageWorker:
         for item_id, item, attempt in calls:
             with Capture() as cap:
                 try:
-                    res, seconds = self.run(item_id, item, attempt)
-                    result = ItemResult(res, seconds)
+                    res, seconds, cpu = self.run(item_id, item, attempt)
+                    result = ItemResult(res, seconds, cpu_seconds=cpu)
                 except Exception as e:  # noqa: BLE001 - the driver retries, then records the failure
                     full = no_space(e)
                     result = ItemResult(None, 0.0, NO_SPACE, full) if full else ItemResult(None, 0.0, type(e).__name__, one_line(e))

@@ -462,7 +462,7 @@ class Runner:
                 self.stats.failed[s] += 1
                 self._check_failures(stores, s)
             else:
-                stores[s].record(_done_record(item_id, out, seconds, attempt, result.node), durable=False)
+                stores[s].record(_done_record(item_id, out, seconds, attempt, result.node, result.cpu_seconds), durable=False)
                 if s != group and not out.info.continues:
                     self.halted[s].add(item_id)
                 self.stats.done[s] += 1
@@ -617,8 +617,10 @@ def _group_id(k: int) -> str:
     return f"shard/{k:05d}"
 
 
-def _done_record(item_id: str, out: StageOutput, seconds: float, attempt: int, node: str | None = None) -> ItemRecord:
+def _done_record(item_id: str, out: StageOutput, seconds: float, attempt: int, node: str | None = None,
+                 cpu_seconds: float | None = None) -> ItemRecord:
     return ItemRecord(item=item_id, status="done", output=out.output, checksum=out.checksum, seconds=seconds,
+                      cpu_seconds=None if cpu_seconds is None else max(cpu_seconds, 0.0),
                       attempts=attempt, info=out.info.model_dump(mode="json"), node=node)
 
 

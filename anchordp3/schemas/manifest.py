@@ -54,6 +54,9 @@ class ItemRecord(BaseModel):
     output: str | None = Field(default=None, description="Output path relative to the stage folder (None when there is none).")
     checksum: str | None = Field(default=None, description="sha256 of the output's bytes.")
     seconds: float = Field(default=0.0, ge=0, description="Compute time of the successful (or last) attempt, seconds.")
+    cpu_seconds: float | None = Field(default=None, ge=0, description="CPU time of the worker process during the successful "
+                                                                        "attempt (all its threads, a renderer's included), seconds: "
+                                                                        "the item's cost whatever else shared the machine; None when not measured.")
     attempts: int = Field(default=1, ge=1, description="Tries made.")
     reason: str | None = Field(default=None, description="Failure reason class (exception type or stage reason).")
     detail: str = Field(default="", description="Failure message, one line.")

@@ -257,6 +257,16 @@ class PolicyConfig(_Config):
                     "start) of the object tokens' offsets from that arm's end effector, so 'pre-grasp = object "
                     "centroid + offset' is one gate away (needs object_tokens > 0, relative targets and 'sample' "
                     "prediction); off: the U-Net alone, as in the report.")
+    gate_supervision: float = Field(
+        default=0.0, ge=0,
+        description="Weight of an auxiliary loss that teaches the anchored offsets' gates which object each anchor "
+                    "belongs to: the MSE between the gates and 1 for the token whose centroid lies nearest the labelled "
+                    "end-effector position when within gate_radius, 0 otherwise (models.objects.nearest_token_gates); "
+                    "0: the gates learn from the diffusion loss alone (needs anchored_offsets).")
+    gate_radius: float = Field(
+        default=0.15, gt=0,
+        description="Metres: an anchor further than this from every object token's centroid belongs to no object "
+                    "(its gates' target is 0); used with gate_supervision > 0.")
 
     @model_validator(mode="after")
     def _dims(self) -> PolicyConfig:
@@ -267,6 +277,8 @@ class PolicyConfig(_Config):
             raise ValueError("anchored_offsets: needs object_tokens > 0, target 'relative' and scheduler.prediction_type 'sample'")
         if self.object_orientation and not self.object_tokens:
             raise ValueError("object_orientation: needs object_tokens > 0")
+        if self.gate_supervision and not self.anchored_offsets:
+            raise ValueError("gate_supervision: needs anchored_offsets")
         return self
 
     @property

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from anchordp3.models.encoders import append_critical_probability
-from anchordp3.models.objects import (POSITION_SCALE, TOKEN_FEATURES, cluster_critical_points, object_tokens,
+from anchordp3.models.objects import (POSITION_SCALE, TOKEN_FEATURES, cluster_critical_points, nearest_token_gates, object_tokens,
                                       token_features)
 from anchordp3.models.policy import AnchorDiffusionPolicy
 from anchordp3.schemas.state import ARMS, StateLayout
@@ -189,23 +189,54 @@ def moved_scenes(seeds: range) -> dict[str, torch.Tensor]:
             "task_id": torch.zeros(len(seeds), dtype=torch.long)}
 
 
+def fitted(config, train: dict[str, torch.Tensor], steps: int) -> AnchorDiffusionPolicy:
+    """A policy of ``config`` trained ``steps`` full-batch AdamW steps on ``train`` (seeded)."""
+    torch.manual_seed(0)
+    policy = AnchorDiffusionPolicy(config)
+    policy.set_normalizers(stats_of(train))
+    opt = torch.optim.AdamW(policy.parameters(), lr=2e-3)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(steps):
+        loss = policy.compute_loss(train, generator=g)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return policy
+
+
 def test_anchored_offsets_find_the_pre_grasp_in_scenes_not_trained_on() -> None:
     train, test = moved_scenes(range(16)), moved_scenes(range(100, 108))
-    stats = stats_of(train)
     errors = {}
     for name, config in (("tokens", TINY.model_copy(update={"object_tokens": 2})), ("anchored", ANCHORED)):
-        torch.manual_seed(0)
-        policy = AnchorDiffusionPolicy(config)
-        policy.set_normalizers(stats)
-        opt = torch.optim.AdamW(policy.parameters(), lr=2e-3)
-        g = torch.Generator().manual_seed(0)
-        for _ in range(300):
-            loss = policy.compute_loss(train, generator=g)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
+        policy = fitted(config, train, 300)
         pred = policy.predict(test, generator=torch.Generator().manual_seed(1))
         left = LAYOUT.ee_xyz("left")
         errors[name] = float((pred[:, 0, left] - test["anchors"][:, 0, left]).norm(dim=-1).mean())
     assert errors["anchored"] < 0.03, errors  # metres: within 3 cm of the pre-grasp on unseen scenes
     assert errors["anchored"] < 0.5 * errors["tokens"], errors
+
+
+def test_gate_targets_name_the_nearest_present_object_within_the_radius() -> None:
+    points, state, truth = scene()
+    tokens = object_tokens(points, state, LAYOUT, 2)  # big first, then small
+    positions = torch.stack([truth[1] + torch.tensor([0.0, 0.0, 0.05]),  # 5 cm above the small one
+                             truth[0] + torch.tensor([0.03, 0.0, 0.0]),   # beside the big one
+                             torch.tensor([0.3, -0.3, 1.1])])             # far from both
+    got = nearest_token_gates(positions.view(1, 3, 1, 3), tokens, radius=0.1)
+    assert got[0, :, 0].tolist() == [[0.0, 1.0], [1.0, 0.0], [0.0, 0.0]]
+    absent = tokens.clone()
+    absent[:, 1] = 0  # the small object not found: the position beside it belongs to no object
+    assert nearest_token_gates(positions[:1].view(1, 1, 1, 3), absent, radius=0.1).sum() == 0
+
+
+def test_supervised_gates_learn_which_object_each_anchor_lies_by() -> None:
+    train, test = moved_scenes(range(16)), moved_scenes(range(100, 108))
+    misses = {}
+    for weight in (0.0, 1.0):
+        policy = fitted(ANCHORED.model_copy(update={"gate_supervision": weight, "gate_radius": 0.15}), train, 150)
+        with torch.no_grad():
+            cond, tokens = policy._condition(test)
+            gates = policy.gates(cond)[:, :, 0]  # the left arm: 10 cm above the small object in every slot
+        misses[weight] = float((gates - torch.tensor([0.0, 1.0])).abs().max())
+    assert misses[1.0] < 0.2, misses
+    assert misses[0.0] > 0.5, misses

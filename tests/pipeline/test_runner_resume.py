@@ -52,6 +52,13 @@ def test_uninterrupted_run_writes_a_complete_dataset_with_manifests(reference):
     assert (run / "config.yaml").is_file()
 
 
+def test_every_done_item_records_the_cpu_time_its_worker_spent(reference):
+    run, _ = reference
+    for s in ("rollout", "render", "features"):
+        cpu = [r.cpu_seconds for r in read_manifest(stage_dir(run, s)).items.values()]
+        assert cpu and all(c is not None and c > 0 for c in cpu), (s, cpu)
+
+
 def test_two_workers_per_stage_give_the_same_dataset_bytes(reference, tmp_path):
     pools = {s: {"workers": 2, "cpus": 0.2} for s in ("rollout", "anchors", "render", "features", "write")}
     run_pipeline(tiny(execution={"pools": pools}), tmp_path, RunOptions(progress_interval=60))
