@@ -112,6 +112,7 @@ class EvalModels:
         self.segmenter = load_segmenter(d / "segmenter" / "model.pt", self.device)
         self.classifier = load_classifier(d / "classifier" / "model.pt", self.device)
         self.policy = load_policy(d / "policy" / "model.pt", self.device, ema=True)
+        self.policy.unet.freeze()  # evaluation never changes the weights
         self.ddim_steps = ddim_steps  # None: the policy's own
         self.samples = samples
 
