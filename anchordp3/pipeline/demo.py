@@ -38,13 +38,16 @@ DEMO_TRAINING = CONFIGS / "demo_training.yaml"
 @dataclass(frozen=True)
 class DemoOptions:
     """episodes: evaluation episodes per task; max_decisions: cap on policy calls per evaluation
-    episode (keeps the demo's length bounded); train/evaluate: stop earlier when False;
+    episode of the demo's own policy (keeps the demo's length bounded: minutes of training do not
+    do the tasks, and a failing episode runs to the cap); pretrained_max_decisions: the same for
+    the shipped models (they take 12-15 decisions per episode); train/evaluate: stop earlier when False;
     training: the training settings (None: the embedded ``configs/demo_training.yaml``);
     pretrained_episodes: unseen seeds per task on which the shipped models are evaluated after the
     demo's own (0: skip)."""
 
     episodes: int = 1
-    max_decisions: int | None = 40
+    max_decisions: int | None = 20
+    pretrained_max_decisions: int | None = 40
     workers: int = 2
     train: bool = True
     evaluate: bool = True
@@ -92,7 +95,7 @@ def run_demo(run_dir: Path, cfg: RunConfig, opts: DemoOptions = DemoOptions()) -
     if opts.pretrained_episodes and shipped_models_present():
         log.info("\n== and the shipped policy (`--models pretrained`, made by configs/recipe.yaml) on the same kind of unseen seeds")
         shipped = EvalOptions(models=PRETRAINED, episodes=opts.pretrained_episodes, workers=opts.workers, address=opts.address,
-                              max_decisions=opts.max_decisions, out=run_dir / PRETRAINED_EVAL_DIR)
+                              max_decisions=opts.pretrained_max_decisions, out=run_dir / PRETRAINED_EVAL_DIR)
         log.info("\n" + evaluation_summary(run_evaluation(None, shipped)))
         log.info(f"Report: {run_dir / PRETRAINED_EVAL_DIR / 'report.md'}")
     log.info(f"Inspect the run: anchordp3 status {run_dir} | anchordp3 inspect {run_dir} render | anchordp3 show {run_dir} --frame 3")

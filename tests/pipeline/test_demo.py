@@ -18,7 +18,7 @@ def test_the_embedded_demo_covers_all_eight_tasks():
 def test_demo_runs_data_training_and_evaluation_and_prints_the_success_table(ray_session, tmp_path):
     cfg = RunConfig.model_validate(tiny_data("tiny-demo", ["place_bell"], "0-1"))
     training = TrainingConfig.model_validate(tiny_training(3, 3, 3, loop={"log_interval_s": 30.0, "cpu_threads": 1}, device="cpu"))
-    opts = DemoOptions(max_decisions=2, workers=1, training=training, pretrained_episodes=1)
+    opts = DemoOptions(max_decisions=2, pretrained_max_decisions=2, workers=1, training=training, pretrained_episodes=1)
     with Capture() as cap:
         report = run_demo(tmp_path, cfg, opts=opts)
     assert report == tmp_path / "eval" / "report.md" and report.is_file()
