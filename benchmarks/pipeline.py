@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from anchordp3.dataset.reader import open_dataset  # noqa: E402
 from anchordp3 import logs  # noqa: E402
 from anchordp3.pipeline.runner import RunOptions, run_pipeline  # noqa: E402
-from anchordp3.pipeline.store import read_manifest, read_records  # noqa: E402
+from anchordp3.pipeline.store import read_manifest  # noqa: E402
 from anchordp3.pipeline.work import DATA_STAGES, stage_dir  # noqa: E402
 from anchordp3.schemas.run import load_run_config  # noqa: E402
 from anchordp3.viz.table import text_table  # noqa: E402
@@ -50,10 +50,11 @@ def main() -> int:
         wall = time.perf_counter() - t0
         rows, total, seconds, cpu = [], 0.0, {}, {}
         for s in DATA_STAGES:
-            c = read_manifest(stage_dir(run, s)).counts
+            m = read_manifest(stage_dir(run, s))
+            c = m.counts
             total += c.seconds
             seconds[s] = c.seconds
-            cpu[s] = sum(r.cpu_seconds or 0.0 for r in read_records(stage_dir(run, s), status="done"))
+            cpu[s] = sum(r.cpu_seconds or 0.0 for r in m.items.values() if r.status == "done")
             rows.append([s, c.done, c.failed, f"{c.seconds:.1f}", f"{cpu[s]:.1f}"])
         ds = open_dataset(stage_dir(run, "write"))
         samples = len(ds)

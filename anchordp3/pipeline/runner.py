@@ -620,7 +620,7 @@ def _group_id(k: int) -> str:
 def _done_record(item_id: str, out: StageOutput, seconds: float, attempt: int, node: str | None = None,
                  cpu_seconds: float | None = None) -> ItemRecord:
     return ItemRecord(item=item_id, status="done", output=out.output, checksum=out.checksum, seconds=seconds,
-                      cpu_seconds=None if cpu_seconds is None else max(cpu_seconds, 0.0),
+                      cpu_seconds=cpu_seconds,
                       attempts=attempt, info=out.info.model_dump(mode="json"), node=node)
 
 
