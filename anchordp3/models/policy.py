@@ -48,6 +48,7 @@ def make_scheduler(config: DiffusionSchedulerConfig):
 
 
 GRIPPER_OFFSET_SCALE = 2.0  # offsets of up to +-0.5 m map to +-1
+GATE_HIDDEN = 256  # hard anchor gating: width of the classifier's hidden layer
 
 
 def gripper_offsets(points: torch.Tensor, state: torch.Tensor, layout: StateLayout) -> torch.Tensor:
@@ -93,7 +94,11 @@ class AnchorDiffusionPolicy(nn.Module):
         self.delta_normalizer = MinMaxNormalizer(config.horizon * config.action_dim)  # relative targets, per slot
         self.noise_scheduler = make_scheduler(config.scheduler)
         self.anchor_gates = None
-        if config.anchored_offsets:  # one gate per (slot, arm, object); zero: the plain U-Net at the start
+        if config.anchored_offsets and config.anchor_gating == "hard":  # logits per (slot, arm): none or object k
+            self.anchor_gates = nn.Sequential(
+                nn.Linear(config.cond_dim, GATE_HIDDEN), nn.Mish(),
+                nn.Linear(GATE_HIDDEN, config.horizon * len(ARMS) * (config.object_tokens + 1)))
+        elif config.anchored_offsets:  # one gate per (slot, arm, object); zero: the plain U-Net at the start
             self.anchor_gates = nn.Linear(config.cond_dim, config.horizon * len(ARMS) * config.object_tokens)
             nn.init.zeros_(self.anchor_gates.weight)
             nn.init.zeros_(self.anchor_gates.bias)
@@ -148,31 +153,42 @@ class AnchorDiffusionPolicy(nn.Module):
         return torch.cat(parts, dim=-1), tokens
 
     def gates(self, cond: torch.Tensor) -> torch.Tensor:
-        """The anchored offsets' gates, a linear function of ``cond (B, cond_dim)``: ``(B, H, arms,
-        object_tokens)`` float32, one per (horizon slot, arm in ``ARMS`` order, object token)."""
+        """The anchored offsets' gates from ``cond (B, cond_dim)``: ``(B, H, arms, object_tokens)``
+        float32, one per (horizon slot, arm in ``ARMS`` order, object token). ``soft``: a linear
+        function of the condition; ``hard``: the one-hot of the classifier's choice (``gate_logits``),
+        all zero where it chose no object."""
+        if self.config.anchor_gating == "hard":
+            k = self.config.object_tokens
+            return F.one_hot(self.gate_logits(cond).argmax(-1), k + 1)[..., 1:].float()
         return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.config.object_tokens)
 
-    def anchored_shift(self, cond: torch.Tensor, tokens: torch.Tensor | None) -> torch.Tensor:
+    def gate_logits(self, cond: torch.Tensor) -> torch.Tensor:
+        """``hard`` gating's classifier: ``cond (B, cond_dim)`` -> logits ``(B, H, arms, 1 +
+        object_tokens)`` over "no object" (class 0) and object token k (class k + 1)."""
+        return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.config.object_tokens + 1)
+
+    def anchored_shift(self, gates: torch.Tensor | None, tokens: torch.Tensor | None) -> torch.Tensor | float:
         """What ``anchored_offsets`` adds to the denoiser's clean sample, ``(B, H, D)`` in normalised
-        target units (0 without it): in arm a's end-effector xyz of slot h, ``sum_k gate[h, a, k] *
-        (centroid_k - ee_a)`` (metres, the tokens' offsets; an absent object offers 0), the gates
-        (``gates``) a linear function of ``cond (B, cond_dim)``, scaled as the relative-target
-        normaliser scales those dims."""
+        target units (0 without it): in arm a's end-effector xyz of slot h, ``sum_k gates[h, a, k] *
+        (centroid_k - ee_a)`` (metres, the tokens' offsets; an absent object offers 0), for ``gates
+        (B, H, arms, K)`` (``gates``, or the labels in hard gating's training), scaled as the
+        relative-target normaliser scales those dims."""
+        if gates is None or tokens is None:
+            return 0.0
         h, d = self.config.horizon, self.config.action_dim
-        shift = cond.new_zeros((cond.shape[0], h, d), dtype=torch.float32)
-        if self.anchor_gates is None or tokens is None:
-            return shift
-        gates = self.gates(cond)
+        shift = gates.new_zeros((gates.shape[0], h, d), dtype=torch.float32)
         offsets = token_gripper_offsets(tokens.float())  # (B, K, arms, 3) metres
         for a, arm in enumerate(ARMS):
-            shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a], offsets[:, :, a])
+            shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a].float(), offsets[:, :, a])
         return shift * self.delta_normalizer.scale.view(h, d).to(shift.dtype)
 
     def compute_loss(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
-        """Diffusion training loss of one batch: MSE over all (B, H, action_dim) elements.
+        """Diffusion training loss of one batch: MSE over all (B, H, action_dim) elements, plus the
+        gates' loss (``gate_loss``) weighted by ``gate_supervision``.
 
         The diffusion noise and timesteps are drawn from ``generator`` (CPU) when given, so a
-        seeded run is reproducible across devices. Runs under autocast on CUDA."""
+        seeded run is reproducible across devices. Runs under autocast on CUDA. With ``hard``
+        gating the offsets follow the labelled anchors' objects (teacher forcing)."""
         anchors = torch.as_tensor(batch["anchors"], device=self.device, dtype=torch.float32)
         self._check_anchors(anchors)
         x0 = self.to_target(anchors, torch.as_tensor(batch["state"], device=self.device, dtype=torch.float32))
@@ -183,16 +199,42 @@ class AnchorDiffusionPolicy(nn.Module):
             cond, tokens = self._condition(batch)
             pred = self.unet(noisy, steps, cond)
         target = x0 if self.config.scheduler.prediction_type == "sample" else noise
-        loss = F.mse_loss(pred.float() + self.anchored_shift(cond, tokens), target)
+        gates = None
+        if self.anchor_gates is not None and tokens is not None:
+            gates = self.gate_targets(tokens, anchors) if self.config.anchor_gating == "hard" else self.gates(cond)
+        loss = F.mse_loss(pred.float() + self.anchored_shift(gates, tokens), target)
         if self.config.gate_supervision and tokens is not None:
             loss = loss + self.config.gate_supervision * self.gate_loss(cond, tokens, anchors)
         return loss
 
-    def gate_loss(self, cond: torch.Tensor, tokens: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
-        """MSE between the gates (``gates``) and which object each labelled end-effector position
-        belongs to (``nearest_token_gates`` within ``gate_radius``): ``anchors (B, H, D)`` data units."""
+    def gate_targets(self, tokens: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
+        """Which object each labelled anchor lies by: ``anchors (B, H, D)`` data units, ``tokens (B,
+        K, features)`` -> ``(B, H, arms, K)`` float32 one-hot or zero (``nearest_token_gates`` within
+        ``gate_radius``)."""
         positions = torch.stack([anchors[:, :, self.layout.ee_xyz(arm)] for arm in ARMS], dim=2)  # (B, H, arms, 3)
-        return F.mse_loss(self.gates(cond), nearest_token_gates(positions, tokens, self.config.gate_radius))
+        return nearest_token_gates(positions, tokens, self.config.gate_radius)
+
+    @torch.no_grad()
+    def first_gate_hits(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
+        """Whether the first slot's gates choose the labelled first anchor's object (``gate_targets``)
+        for every arm: a batch with ``anchors`` -> ``(B,)`` bool; None without anchored offsets."""
+        if self.anchor_gates is None:
+            return None
+        cond, tokens = self._condition(batch)
+        anchors = torch.as_tensor(batch["anchors"], device=self.device, dtype=torch.float32)
+        labels = self.gate_targets(tokens, anchors)[:, 0]  # (B, arms, K)
+        return (self.gates(cond)[:, 0].round() == labels).all(-1).all(-1)
+
+    def gate_loss(self, cond: torch.Tensor, tokens: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
+        """How far the gates are from the labelled anchors' objects (``gate_targets``): ``soft``, the
+        MSE of the gates; ``hard``, the cross-entropy of ``gate_logits`` against the class (0: no
+        object, k + 1: token k). ``anchors (B, H, D)`` data units."""
+        targets = self.gate_targets(tokens, anchors)
+        if self.config.anchor_gating == "hard":
+            classes = (targets.argmax(-1) + 1) * (targets.sum(-1) > 0)  # (B, H, arms)
+            logits = self.gate_logits(cond)
+            return F.cross_entropy(logits.flatten(0, 2), classes.flatten())
+        return F.mse_loss(self.gates(cond), targets)
 
     @torch.no_grad()
     def predict(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None,
@@ -211,10 +253,11 @@ class AnchorDiffusionPolicy(nn.Module):
         scheduler = self.noise_scheduler
         with autocast(self.device, self.mixed_precision):
             cond, tokens = self._condition(obs)
-        shift = self.anchored_shift(cond, tokens)
+        shift = self.anchored_shift(None if self.anchor_gates is None else self.gates(cond), tokens)
         b = cond.shape[0]
         if samples > 1:
-            cond, shift = cond.repeat_interleave(samples, 0), shift.repeat_interleave(samples, 0)
+            cond = cond.repeat_interleave(samples, 0)
+            shift = shift.repeat_interleave(samples, 0) if torch.is_tensor(shift) else shift
         x = torch.randn((b * samples, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
         steps = self.config.scheduler.num_inference_steps if steps is None else steps
         if not 1 <= steps <= self.config.scheduler.num_train_timesteps:

@@ -260,9 +260,18 @@ class PolicyConfig(_Config):
     gate_supervision: float = Field(
         default=0.0, ge=0,
         description="Weight of an auxiliary loss that teaches the anchored offsets' gates which object each anchor "
-                    "belongs to: the MSE between the gates and 1 for the token whose centroid lies nearest the labelled "
-                    "end-effector position when within gate_radius, 0 otherwise (models.objects.nearest_token_gates); "
+                    "belongs to: the MSE (soft anchor_gating; cross-entropy when 'hard') between the gates and 1 for the "
+                    "token whose centroid lies nearest the labelled end-effector position when within gate_radius, 0 "
+                    "otherwise (models.objects.nearest_token_gates); "
                     "0: the gates learn from the diffusion loss alone (needs anchored_offsets).")
+    anchor_gating: Literal["soft", "hard"] = Field(
+        default="soft",
+        description="How the anchored offsets pick an object (with anchored_offsets): 'soft', each gate a linear "
+                    "function of the condition, mixed continuously; 'hard', a classifier per (slot, arm) over 'no "
+                    "object' or one of the tokens, trained by cross-entropy on the labelled anchors' nearest token "
+                    "(gate_radius; weight gate_supervision) and one-hot at use: in training the offsets follow the "
+                    "label (teacher forcing), in prediction the classifier's argmax, so an anchor is never shifted "
+                    "halfway to an object.")
     gate_radius: float = Field(
         default=0.15, gt=0,
         description="Metres: an anchor further than this from every object token's centroid belongs to no object "
@@ -279,6 +288,8 @@ class PolicyConfig(_Config):
             raise ValueError("object_orientation: needs object_tokens > 0")
         if self.gate_supervision and not self.anchored_offsets:
             raise ValueError("gate_supervision: needs anchored_offsets")
+        if self.anchor_gating == "hard" and not (self.anchored_offsets and self.gate_supervision):
+            raise ValueError("anchor_gating: 'hard' needs anchored_offsets and gate_supervision > 0 (the classifier's loss weight)")
         return self
 
     @property

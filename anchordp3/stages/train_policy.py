@@ -207,14 +207,16 @@ class PolicyJob(TrainingJob):
         validation split's decision states (``rest`` frames: the robot at rest at an anchor, as in
         closed loop; expert frames when the plan has none), per task and over all of them:
         ``first_cm[/task]`` the gripper position error (mean over samples of the worse arm),
-        centimetres; ``first_rad[/task]`` the mean absolute arm-joint error, radians per joint."""
+        centimetres; ``first_rad[/task]`` the mean absolute arm-joint error, radians per joint; with
+        anchored offsets, ``first_gate[/task]`` the share whose first gates choose the labelled
+        anchor's object (``AnchorDiffusionPolicy.first_gate_hits``; soft gates rounded)."""
         picks = self.decision_indices()
         if not picks:
             return {}
         layout = self.model.layout
         xyz = [np.arange(layout.dim)[layout.ee_xyz(a)] for a in ARMS]
         joints = np.concatenate([np.arange(layout.dim)[layout.qpos(a)] for a in ARMS])
-        cm, rad, task = [], [], []
+        cm, rad, task, gate = [], [], [], []
         size = self.cfg.optim.batch_size
         for i in range(0, len(picks), size):
             obs = self.observation(collate_samples(self.val_ds.__getitems__(picks[i:i + size])))
@@ -223,12 +225,17 @@ class PolicyJob(TrainingJob):
             cm.append(100 * np.max([np.linalg.norm(pred[:, k] - true[:, k], axis=1) for k in xyz], axis=0))
             rad.append(np.abs(pred[:, joints] - true[:, joints]).mean(axis=1))
             task.append(obs["task_id"].cpu().numpy())
+            hits = model.first_gate_hits(obs)
+            if hits is not None:
+                gate.append(hits.cpu().numpy())
         cm_all, rad_all, task_all = np.concatenate(cm), np.concatenate(rad), np.concatenate(task)
-        out = {"first_cm": float(cm_all.mean()), "first_rad": float(rad_all.mean())}
+        metrics = {"first_cm": cm_all, "first_rad": rad_all}
+        if gate:
+            metrics["first_gate"] = np.concatenate(gate).astype(np.float64)
+        out = {name: float(values.mean()) for name, values in metrics.items()}
         for k in np.unique(task_all).tolist():
             sel = task_all == k
-            out[f"first_cm/{TASK_NAMES[k]}"] = float(cm_all[sel].mean())
-            out[f"first_rad/{TASK_NAMES[k]}"] = float(rad_all[sel].mean())
+            out.update({f"{name}/{TASK_NAMES[k]}": float(values[sel].mean()) for name, values in metrics.items()})
         return out
 
     def decision_indices(self) -> list[int]:

@@ -152,10 +152,10 @@ def test_anchored_offsets_add_the_gated_object_offsets_to_end_effector_positions
     batch = {**samples(1), "points": points, "state": state}
     policy.set_normalizers(stats_of(batch))
     cond, tokens = policy.encode_observation(batch), object_tokens(points, state, LAYOUT, 2)
-    assert policy.anchored_shift(cond, tokens).abs().max() == 0  # zero gates at the start: the plain policy
+    assert policy.anchored_shift(policy.gates(cond), tokens).abs().max() == 0  # zero gates at the start: the plain policy
     with torch.no_grad():
         policy.anchor_gates.bias.view(8, len(ARMS), 2)[0, 0, 1] = 1.0  # slot 0, left arm, the small object
-    shift = policy.anchored_shift(cond, tokens) / policy.delta_normalizer.scale.view(8, 32)  # data units
+    shift = policy.anchored_shift(policy.gates(cond), tokens) / policy.delta_normalizer.scale.view(8, 32)  # data units
     left = LAYOUT.ee_xyz("left")
     assert (shift[0, 0, left] - (truth[1] - state[0, left])).abs().max() < 0.01
     elsewhere = torch.ones(8, 32, dtype=torch.bool)
@@ -204,16 +204,20 @@ def fitted(config, train: dict[str, torch.Tensor], steps: int) -> AnchorDiffusio
     return policy
 
 
+HARD = ANCHORED.model_copy(update={"anchor_gating": "hard", "gate_supervision": 1.0, "gate_radius": 0.15})
+
+
 def test_anchored_offsets_find_the_pre_grasp_in_scenes_not_trained_on() -> None:
     train, test = moved_scenes(range(16)), moved_scenes(range(100, 108))
     errors = {}
-    for name, config in (("tokens", TINY.model_copy(update={"object_tokens": 2})), ("anchored", ANCHORED)):
+    for name, config in (("tokens", TINY.model_copy(update={"object_tokens": 2})), ("anchored", ANCHORED), ("hard", HARD)):
         policy = fitted(config, train, 300)
         pred = policy.predict(test, generator=torch.Generator().manual_seed(1))
         left = LAYOUT.ee_xyz("left")
         errors[name] = float((pred[:, 0, left] - test["anchors"][:, 0, left]).norm(dim=-1).mean())
     assert errors["anchored"] < 0.03, errors  # metres: within 3 cm of the pre-grasp on unseen scenes
     assert errors["anchored"] < 0.5 * errors["tokens"], errors
+    assert errors["hard"] < 0.5 * errors["tokens"], errors
 
 
 def test_gate_targets_name_the_nearest_present_object_within_the_radius() -> None:
@@ -240,3 +244,48 @@ def test_supervised_gates_learn_which_object_each_anchor_lies_by() -> None:
         misses[weight] = float((gates - torch.tensor([0.0, 1.0])).abs().max())
     assert misses[1.0] < 0.2, misses
     assert misses[0.0] > 0.5, misses
+
+
+def test_hard_gates_choose_one_object_or_none_and_learn_which() -> None:
+    train, test = moved_scenes(range(16)), moved_scenes(range(100, 108))
+    fresh = AnchorDiffusionPolicy(HARD)
+    fresh.set_normalizers(stats_of(train))
+    policy = fitted(HARD, train, 150)
+    with torch.no_grad():
+        for model in (fresh, policy):
+            gates = model.gates(model._condition(test)[0])
+            assert set(gates.unique().tolist()) <= {0.0, 1.0} and gates.sum(-1).max() <= 1  # one-hot or none
+        cond, tokens = policy._condition(test)
+        gates = policy.gates(cond)
+    assert (gates[:, :, 0] == torch.tensor([0.0, 1.0])).all()  # the left arm: by the small object, every slot
+    assert (gates[:, :, 1] == 0).all()  # the right arm, resting: by none
+
+
+def test_hard_gating_trains_its_offsets_on_the_labelled_objects() -> None:
+    """In training the shift follows the labels (teacher forcing), not the untrained classifier's
+    choice: the loss with the labels' shift equals ``compute_loss``'s diffusion part."""
+    train = moved_scenes(range(4))
+    torch.manual_seed(0)
+    policy = AnchorDiffusionPolicy(HARD.model_copy(update={"gate_supervision": 1e-12}))
+    policy.set_normalizers(stats_of(train))
+    with torch.no_grad():
+        policy.anchor_gates[-1].bias.view(8, len(ARMS), 3)[:, 0] = torch.tensor([10.0, 0.0, 0.0])  # predicts "none"
+        loss = policy.compute_loss(train, generator=torch.Generator().manual_seed(0))
+        cond, tokens = policy._condition(train)
+        labels = policy.gate_targets(tokens, train["anchors"])
+        assert labels[:, :, 0, 1].all() and not policy.gates(cond)[:, :, 0].any()
+        g = torch.Generator().manual_seed(0)
+        x0 = policy.to_target(train["anchors"], train["state"])
+        noise = torch.randn(x0.shape, generator=g)
+        steps = torch.randint(0, policy.noise_scheduler.config.num_train_timesteps, (4,), generator=g)
+        pred = policy.unet(policy.noise_scheduler.add_noise(x0, noise, steps), steps, cond)
+        expected = torch.nn.functional.mse_loss(pred + policy.anchored_shift(labels, tokens), x0)
+    assert abs(float(loss) - float(expected)) < 1e-5
+
+
+def test_hard_gating_needs_its_classifier_loss() -> None:
+    import pytest
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="anchor_gating"):
+        ANCHORED.model_validate({**ANCHORED.model_dump(), "anchor_gating": "hard"})
