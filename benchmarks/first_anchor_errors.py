@@ -9,7 +9,8 @@ prints the gripper error of the first anchor (cm, the worse arm) for a single dr
 mean of the draws, by the size of the true move (< 2 cm: close or open in place; 2-10 cm: down
 to the grasp, lifts; > 10 cm: from home to the object, to the target), with the spread of the
 draws around their mean. A mean-of-draws error close to the single-draw error says the error is a
-bias, not sampling noise. The critical channel comes from the run's cached segmenter
+bias, not sampling noise. With anchored offsets a second table splits the one-draw error by
+whether the first gates pick the labelled anchor's object (``first_gate_hits``). The critical channel comes from the run's cached segmenter
 probabilities (``models/policy/critical_prob-*.npy``, written by ``train policy``).
 Last line: ``RESULT val_cm=X val_long_cm=Y train_cm=Z train_long_cm=W``.
 """
@@ -59,7 +60,7 @@ def main() -> int:
     policy = load_policy(models / "policy" / "model.pt")
     layout = StateLayout.of_length(policy.config.action_dim)
     lut = torch.tensor(model_task_ids(data.tasks))
-    rows, result = [], {}
+    rows, gate_rows, result = [], [], {}
     for split in ("validation", "train"):
         ds = SplitDataset(data, split, keys=POLICY_KEYS)
         kinds = np.array([data.sample(int(i), ())["kind"] for i in ds.samples])
@@ -77,10 +78,17 @@ def main() -> int:
             if sel.any():
                 rows.append([split, name, int(sel.sum()), f"{single[sel].mean():.2f}", f"{mean[sel].mean():.2f}", f"{spread[sel].mean():.2f}"])
         rows.append([split, "all", len(move), f"{single.mean():.2f}", f"{mean.mean():.2f}", f"{spread.mean():.2f}"])
+        hits = policy.first_gate_hits({**obs, "anchors": batch["anchors"]})
+        if hits is not None:
+            for name, sel in (("right", hits.numpy()), ("wrong", ~hits.numpy())):
+                if sel.any():
+                    gate_rows.append([split, name, int(sel.sum()), f"{single[sel].mean():.2f}", f"{np.median(single[sel]):.2f}"])
         key = "val" if split == "validation" else "train"
         result[f"{key}_cm"] = single.mean()
         result[f"{key}_long_cm"] = single[move >= 10].mean() if (move >= 10).any() else float("nan")
     print(text_table(["split", "true move", "states", "error, one draw (cm)", f"error, mean of {args.draws}", "draw spread"], rows))
+    if gate_rows:
+        print(text_table(["split", "first gates", "states", "error, one draw (cm)", "median"], gate_rows))
     print("RESULT " + " ".join(f"{k}={v:.2f}" for k, v in result.items()))
     return 0
 

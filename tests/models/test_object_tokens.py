@@ -259,6 +259,8 @@ def test_hard_gates_choose_one_object_or_none_and_learn_which() -> None:
         gates = policy.gates(cond)
     assert (gates[:, :, 0] == torch.tensor([0.0, 1.0])).all()  # the left arm: by the small object, every slot
     assert (gates[:, :, 1] == 0).all()  # the right arm, resting: by none
+    assert policy.first_gate_hits(test).all()  # what training logs as first_gate
+    assert AnchorDiffusionPolicy(TINY).first_gate_hits(test) is None  # no anchored offsets: nothing to log
 
 
 def test_hard_gating_trains_its_offsets_on_the_labelled_objects() -> None:
