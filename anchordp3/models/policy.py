@@ -199,12 +199,14 @@ class AnchorDiffusionPolicy(nn.Module):
             cond, tokens = self._condition(batch)
             pred = self.unet(noisy, steps, cond)
         target = x0 if self.config.scheduler.prediction_type == "sample" else noise
-        gates = None
-        if self.anchor_gates is not None and tokens is not None:
-            gates = self.gate_targets(tokens, anchors) if self.config.anchor_gating == "hard" else self.gates(cond)
+        if self.anchor_gates is None or tokens is None:
+            return F.mse_loss(pred.float(), target)
+        hard = self.config.anchor_gating == "hard"
+        labels = self.gate_targets(tokens, anchors) if hard or self.config.gate_supervision else None
+        gates = labels if hard else self.gates(cond)
         loss = F.mse_loss(pred.float() + self.anchored_shift(gates, tokens), target)
-        if self.config.gate_supervision and tokens is not None:
-            loss = loss + self.config.gate_supervision * self.gate_loss(cond, tokens, anchors)
+        if self.config.gate_supervision:
+            loss = loss + self.config.gate_supervision * self.gate_loss(cond, labels)
         return loss
 
     def gate_targets(self, tokens: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
@@ -225,11 +227,10 @@ class AnchorDiffusionPolicy(nn.Module):
         labels = self.gate_targets(tokens, anchors)[:, 0]  # (B, arms, K)
         return (self.gates(cond)[:, 0].round() == labels).all(-1).all(-1)
 
-    def gate_loss(self, cond: torch.Tensor, tokens: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
-        """How far the gates are from the labelled anchors' objects (``gate_targets``): ``soft``, the
-        MSE of the gates; ``hard``, the cross-entropy of ``gate_logits`` against the class (0: no
-        object, k + 1: token k). ``anchors (B, H, D)`` data units."""
-        targets = self.gate_targets(tokens, anchors)
+    def gate_loss(self, cond: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        """How far the gates are from the labelled anchors' objects, ``targets (B, H, arms, K)``
+        (``gate_targets``): ``soft``, the MSE of the gates; ``hard``, the cross-entropy of
+        ``gate_logits`` against the class (0: no object, k + 1: token k)."""
         if self.config.anchor_gating == "hard":
             classes = (targets.argmax(-1) + 1) * (targets.sum(-1) > 0)  # (B, H, arms)
             logits = self.gate_logits(cond)
@@ -253,11 +254,11 @@ class AnchorDiffusionPolicy(nn.Module):
         scheduler = self.noise_scheduler
         with autocast(self.device, self.mixed_precision):
             cond, tokens = self._condition(obs)
-        shift = self.anchored_shift(None if self.anchor_gates is None else self.gates(cond), tokens)
         b = cond.shape[0]
         if samples > 1:
             cond = cond.repeat_interleave(samples, 0)
-            shift = shift.repeat_interleave(samples, 0) if torch.is_tensor(shift) else shift
+            tokens = None if tokens is None else tokens.repeat_interleave(samples, 0)
+        shift = self.anchored_shift(None if self.anchor_gates is None else self.gates(cond), tokens)
         x = torch.randn((b * samples, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
         steps = self.config.scheduler.num_inference_steps if steps is None else steps
         if not 1 <= steps <= self.config.scheduler.num_train_timesteps:
