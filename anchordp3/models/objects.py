@@ -36,6 +36,8 @@ from anchordp3.schemas.state import ARMS, StateLayout
 
 POSITION_SCALE = 2.0  # metres -> about [-1, 1] over the workspace, as the gripper offsets
 SPREAD_SCALE = 10.0  # a cluster spread of 2-10 cm -> 0.2-1
+HELD_RADIUS = 0.06  # metres: an object whose centroid lies this near a closed gripper is held by it
+GRIPPER_CLOSED = 0.9  # normalised opening (1 open) below which a gripper counts as closed
 SEED_RADIUS = 0.02  # metres: neighbours counted for a seed's density
 SEED_CANDIDATES = 256  # points (an even subsample) considered as seeds
 LLOYD_ITERATIONS = 6
@@ -151,6 +153,34 @@ def nearest_token_gates(positions: torch.Tensor, tokens: torch.Tensor, radius: f
     d = d.masked_fill(~present[:, None, None, :], float("inf"))
     near, which = d.min(-1)
     return torch.nn.functional.one_hot(which, tokens.shape[1]).float() * (near < radius)[..., None].float()
+
+
+def held_tokens(tokens: torch.Tensor, grippers: torch.Tensor) -> torch.Tensor:
+    """Which object each arm holds: ``tokens (B, k, features)``, ``grippers (B, arms)`` normalised
+    openings (``ARMS`` order) -> ``(B, arms, k)`` float32, 1 for the present token whose centroid is
+    nearest the arm's end effector when within ``HELD_RADIUS`` and the gripper is closed
+    (below ``GRIPPER_CLOSED``), else 0."""
+    offsets = token_gripper_offsets(tokens.float())  # (B, k, arms, 3)
+    _, present = token_centroids(tokens.float())
+    d = offsets.norm(dim=-1).transpose(1, 2).masked_fill(~present[:, None, :], float("inf"))  # (B, arms, k)
+    near, which = d.min(-1)
+    held = (near < HELD_RADIUS) & (grippers.float() < GRIPPER_CLOSED)
+    return torch.nn.functional.one_hot(which, tokens.shape[1]).float() * held[..., None].float()
+
+
+def pair_offsets(tokens: torch.Tensor) -> torch.Tensor:
+    """The offsets that ``held_offsets`` gating chooses among: ``tokens (B, k, features)`` ->
+    ``(B, k * k, arms, 3)`` metres, entry ``k_obj * k + j``: token ``k_obj``'s centroid minus the
+    arm's end effector where ``j == k_obj``, minus held token ``j``'s centroid where ``j != k_obj``
+    (the same for both arms; 0 where either object is absent)."""
+    b, k = tokens.shape[:2]
+    to_ee = token_gripper_offsets(tokens.float())  # (B, k, arms, 3)
+    centroids, present = token_centroids(tokens.float())
+    between = (centroids[:, :, None] - centroids[:, None, :]) * (present[:, :, None] & present[:, None, :])[..., None]  # (B, k, k, 3)
+    table = between[:, :, :, None, :].expand(-1, -1, -1, to_ee.shape[2], -1).clone()  # (B, k, k, arms, 3)
+    idx = torch.arange(k, device=tokens.device)
+    table[:, idx, idx] = to_ee
+    return table.reshape(b, k * k, to_ee.shape[2], 3)
 
 
 class ObjectTokenEncoder(torch.nn.Module):

@@ -27,7 +27,8 @@ from anchordp3.models.device import autocast
 from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
 from anchordp3.models.kernels import fast_kernels
 from anchordp3.models.normalizer import MinMaxNormalizer
-from anchordp3.models.objects import ObjectTokenEncoder, nearest_token_gates, object_tokens, token_features, token_gripper_offsets
+from anchordp3.models.objects import (ObjectTokenEncoder, held_tokens, nearest_token_gates, object_tokens, pair_offsets,
+                                      token_features, token_gripper_offsets)
 from anchordp3.models.unet1d import ConditionalUnet1D
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
@@ -94,10 +95,10 @@ class AnchorDiffusionPolicy(nn.Module):
         self.delta_normalizer = MinMaxNormalizer(config.horizon * config.action_dim)  # relative targets, per slot
         self.noise_scheduler = make_scheduler(config.scheduler)
         self.anchor_gates = None
-        if config.anchored_offsets and config.anchor_gating == "hard":  # logits per (slot, arm): none or object k
+        if config.anchored_offsets and config.anchor_gating == "hard":  # logits per (slot, arm): none or one offset
             self.anchor_gates = nn.Sequential(
                 nn.Linear(config.cond_dim, GATE_HIDDEN), nn.Mish(),
-                nn.Linear(GATE_HIDDEN, config.horizon * len(ARMS) * (config.object_tokens + 1)))
+                nn.Linear(GATE_HIDDEN, config.horizon * len(ARMS) * (config.gate_choices + 1)))
         elif config.anchored_offsets:  # one gate per (slot, arm, object); zero: the plain U-Net at the start
             self.anchor_gates = nn.Linear(config.cond_dim, config.horizon * len(ARMS) * config.object_tokens)
             nn.init.zeros_(self.anchor_gates.weight)
@@ -153,31 +154,32 @@ class AnchorDiffusionPolicy(nn.Module):
         return torch.cat(parts, dim=-1), tokens
 
     def gates(self, cond: torch.Tensor) -> torch.Tensor:
-        """The anchored offsets' gates from ``cond (B, cond_dim)``: ``(B, H, arms, object_tokens)``
-        float32, one per (horizon slot, arm in ``ARMS`` order, object token). ``soft``: a linear
-        function of the condition; ``hard``: the one-hot of the classifier's choice (``gate_logits``),
-        all zero where it chose no object."""
+        """The anchored offsets' gates from ``cond (B, cond_dim)``: ``(B, H, arms, gate_choices)``
+        float32, one per (horizon slot, arm in ``ARMS`` order, offset: an object token, or with
+        ``held_offsets`` an (object, held object) pair, ``pair_offsets``). ``soft``: a linear function
+        of the condition; ``hard``: the one-hot of the classifier's choice (``gate_logits``), all zero
+        where it chose no object."""
         if self.config.anchor_gating == "hard":
-            k = self.config.object_tokens
-            return F.one_hot(self.gate_logits(cond).argmax(-1), k + 1)[..., 1:].float()
+            return F.one_hot(self.gate_logits(cond).argmax(-1), self.config.gate_choices + 1)[..., 1:].float()
         return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.config.object_tokens)
 
     def gate_logits(self, cond: torch.Tensor) -> torch.Tensor:
         """``hard`` gating's classifier: ``cond (B, cond_dim)`` -> logits ``(B, H, arms, 1 +
-        object_tokens)`` over "no object" (class 0) and object token k (class k + 1)."""
-        return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.config.object_tokens + 1)
+        gate_choices)`` over "no object" (class 0) and offset g (class g + 1)."""
+        return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.config.gate_choices + 1)
 
     def anchored_shift(self, gates: torch.Tensor | None, tokens: torch.Tensor | None) -> torch.Tensor | float:
         """What ``anchored_offsets`` adds to the denoiser's clean sample, ``(B, H, D)`` in normalised
-        target units (0 without it): in arm a's end-effector xyz of slot h, ``sum_k gates[h, a, k] *
-        (centroid_k - ee_a)`` (metres, the tokens' offsets; an absent object offers 0), for ``gates
-        (B, H, arms, K)`` (``gates``, or the labels in hard gating's training), scaled as the
+        target units (0 without it): in arm a's end-effector xyz of slot h, ``sum_g gates[h, a, g] *
+        offset_g`` (metres: ``centroid_k - ee_a`` per token, with ``held_offsets`` also ``centroid_k -
+        centroid_j`` per pair, ``pair_offsets``; an absent object offers 0), for ``gates (B, H, arms,
+        gate_choices)`` (``gates``, or the labels in hard gating's training), scaled as the
         relative-target normaliser scales those dims."""
         if gates is None or tokens is None:
             return 0.0
         h, d = self.config.horizon, self.config.action_dim
         shift = gates.new_zeros((gates.shape[0], h, d), dtype=torch.float32)
-        offsets = token_gripper_offsets(tokens.float())  # (B, K, arms, 3) metres
+        offsets = pair_offsets(tokens) if self.config.held_offsets else token_gripper_offsets(tokens.float())  # (B, G, arms, 3)
         for a, arm in enumerate(ARMS):
             shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a].float(), offsets[:, :, a])
         return shift * self.delta_normalizer.scale.view(h, d).to(shift.dtype)
@@ -191,7 +193,8 @@ class AnchorDiffusionPolicy(nn.Module):
         gating the offsets follow the labelled anchors' objects (teacher forcing)."""
         anchors = torch.as_tensor(batch["anchors"], device=self.device, dtype=torch.float32)
         self._check_anchors(anchors)
-        x0 = self.to_target(anchors, torch.as_tensor(batch["state"], device=self.device, dtype=torch.float32))
+        state = torch.as_tensor(batch["state"], device=self.device, dtype=torch.float32)
+        x0 = self.to_target(anchors, state)
         noise = torch.randn(x0.shape, generator=generator).to(self.device)
         steps = torch.randint(0, self.noise_scheduler.config.num_train_timesteps, (x0.shape[0],), generator=generator).to(self.device)
         noisy = self.noise_scheduler.add_noise(x0, noise, steps)
@@ -202,19 +205,27 @@ class AnchorDiffusionPolicy(nn.Module):
         if self.anchor_gates is None or tokens is None:
             return F.mse_loss(pred.float(), target)
         hard = self.config.anchor_gating == "hard"
-        labels = self.gate_targets(tokens, anchors) if hard or self.config.gate_supervision else None
+        labels = self.gate_targets(tokens, anchors, state) if hard or self.config.gate_supervision else None
         gates = labels if hard else self.gates(cond)
         loss = F.mse_loss(pred.float() + self.anchored_shift(gates, tokens), target)
         if self.config.gate_supervision:
             loss = loss + self.config.gate_supervision * self.gate_loss(cond, labels)
         return loss
 
-    def gate_targets(self, tokens: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
-        """Which object each labelled anchor lies by: ``anchors (B, H, D)`` data units, ``tokens (B,
-        K, features)`` -> ``(B, H, arms, K)`` float32 one-hot or zero (``nearest_token_gates`` within
-        ``gate_radius``)."""
+    def gate_targets(self, tokens: torch.Tensor, anchors: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Which offset each labelled anchor takes: ``anchors (B, H, D)``, ``state (B, D)`` data units,
+        ``tokens (B, K, features)`` -> ``(B, H, arms, gate_choices)`` float32 one-hot or zero: the
+        object it lies by (``nearest_token_gates`` within ``gate_radius``) and, with ``held_offsets``,
+        relative to the object the arm holds now (``held_tokens``) when that is another one."""
         positions = torch.stack([anchors[:, :, self.layout.ee_xyz(arm)] for arm in ARMS], dim=2)  # (B, H, arms, 3)
-        return nearest_token_gates(positions, tokens, self.config.gate_radius)
+        near = nearest_token_gates(positions, tokens, self.config.gate_radius)  # (B, H, arms, K)
+        if not self.config.held_offsets:
+            return near
+        grippers = torch.stack([state[:, self.layout.gripper(arm)] for arm in ARMS], dim=-1)
+        eye = torch.eye(tokens.shape[1], device=tokens.device)
+        other = held_tokens(tokens, grippers)[:, None, :, None, :] * (1 - eye)  # (B, 1, arms, K, K): holds j != k
+        pick = other + eye * (1 - other.sum(-1, keepdim=True))  # (k, j): held j != k, else (k, k)
+        return (near[..., None] * pick).flatten(-2)
 
     @torch.no_grad()
     def first_gate_hits(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
@@ -224,13 +235,14 @@ class AnchorDiffusionPolicy(nn.Module):
             return None
         cond, tokens = self._condition(batch)
         anchors = torch.as_tensor(batch["anchors"], device=self.device, dtype=torch.float32)
-        labels = self.gate_targets(tokens, anchors)[:, 0]  # (B, arms, K)
+        state = torch.as_tensor(batch["state"], device=self.device, dtype=torch.float32)
+        labels = self.gate_targets(tokens, anchors, state)[:, 0]  # (B, arms, gate_choices)
         return (self.gates(cond)[:, 0].round() == labels).all(-1).all(-1)
 
     def gate_loss(self, cond: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-        """How far the gates are from the labelled anchors' objects, ``targets (B, H, arms, K)``
-        (``gate_targets``): ``soft``, the MSE of the gates; ``hard``, the cross-entropy of
-        ``gate_logits`` against the class (0: no object, k + 1: token k)."""
+        """How far the gates are from the labelled anchors' offsets, ``targets (B, H, arms,
+        gate_choices)`` (``gate_targets``): ``soft``, the MSE of the gates; ``hard``, the cross-entropy
+        of ``gate_logits`` against the class (0: no object, g + 1: offset g)."""
         if self.config.anchor_gating == "hard":
             classes = (targets.argmax(-1) + 1) * (targets.sum(-1) > 0)  # (B, H, arms)
             logits = self.gate_logits(cond)

@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from anchordp3.pipeline.phases import PhaseClock
-from anchordp3.pipeline.evaluation import SEED_OFFSET, EvalOptions, run_evaluation, summarize, wilson_interval
+from anchordp3.pipeline.evaluation import SEED_OFFSET, run_evaluation, summarize, wilson_interval
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.training import MODELS, train_models
@@ -107,8 +107,7 @@ def run_experiment(out: Path, cfg: ExperimentConfig,
     records = {}
     for arm in ARMS:
         timed(arm, "train", lambda: train_models(out / arm, MODELS, cfg.training))
-        opts = EvalOptions(episodes=cfg.eval.episodes, workers=cfg.eval.workers, max_decisions=cfg.eval.max_decisions,
-                           address=address, first_seed=first_seed, through=cfg.eval.through)
+        opts = cfg.eval.options(address=address, first_seed=first_seed)
         records[arm] = timed(arm, "eval", lambda: run_evaluation(out / arm, opts, runs[arm]))
 
     results = _results(out, runs, records, seconds)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from anchordp3.pipeline.evaluation import EvalOptions, run_evaluation, summarize, wilson_interval
+from anchordp3.pipeline.evaluation import run_evaluation, summarize, wilson_interval
 from anchordp3.pipeline.phases import PhaseClock
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.training import MODELS, model_status, train_models
@@ -36,14 +36,12 @@ def run_recipe(out: Path, cfg: RecipeConfig, address: str | None = None,
     clock.timed(GROUP, "data", lambda: run_pipeline(cfg.run, run, RunOptions(address=address, keep_outputs=keep_outputs)))
     clock.timed(GROUP, "train", lambda: train_models(run, MODELS, cfg.training))
     e = cfg.eval
-    base = dict(workers=e.workers, max_decisions=e.max_decisions, through=e.through, samples=e.samples, ddim_steps=e.ddim_steps,
-                address=address)
-    unseen = clock.timed(GROUP, "eval", lambda: run_evaluation(run, EvalOptions(episodes=e.episodes, out=out / "eval", **base), cfg.run))
+    unseen = clock.timed(GROUP, "eval", lambda: run_evaluation(run, e.options(out=out / "eval", address=address), cfg.run))
     seen: list[dict] = []
     if e.train_episodes:
         seeds = ",".join(str(s) for s in cfg.run.seed_list[:e.train_episodes])
         seen = clock.timed(GROUP, "eval-train", lambda: run_evaluation(
-            run, EvalOptions(seeds=seeds, out=out / "eval-train", strips=0, **base), cfg.run))
+            run, e.options(seeds=seeds, out=out / "eval-train", strips=0, address=address), cfg.run))
     results = recipe_results(out, cfg, unseen, seen, clock.seconds[GROUP])
     atomic_write_bytes(out / "results.json", json.dumps(results, indent=1).encode())
     atomic_write_bytes(out / "report.md", recipe_report(results).encode())

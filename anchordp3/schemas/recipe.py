@@ -4,27 +4,19 @@ evaluated policy (data, training, evaluation on unseen and on training seeds).""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
-
 from pydantic import BaseModel, ConfigDict, Field
 
+from anchordp3.schemas.experiment import ExperimentEvalConfig
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.training import TrainingConfig
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 
 
-class RecipeEvalConfig(BaseModel):
-    """Closed-loop evaluation of the recipe's models."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class RecipeEvalConfig(ExperimentEvalConfig):
+    """Closed-loop evaluation of the recipe's models: on unseen seeds and again on training seeds."""
 
     episodes: int = Field(default=50, ge=1, description="Unseen evaluation seeds per task (from max training seed + 1000).")
     train_episodes: int = Field(default=20, ge=0, description="Training seeds per task evaluated again, to check the policy does what it was shown (0: skip).")
-    workers: int = Field(default=2, ge=1, description="Ray actors running episodes in parallel.")
-    max_decisions: int | None = Field(default=None, ge=1, description="Cap on policy calls per episode (None: only the task's step limit).")
-    through: Literal["pose", "joints"] = Field(default="pose", description="Carry out an anchor through its end-effector poses (IK) or its joint angles (the report).")
-    samples: int = Field(default=1, ge=1, le=64, description="Anchor sequences drawn per decision, their medoid carried out (1: one sample, as the report).")
-    ddim_steps: int | None = Field(default=None, ge=1, le=100, description="DDIM steps per decision (None: the policy's own, its config's scheduler.num_inference_steps).")
 
 
 class RecipeConfig(BaseModel):

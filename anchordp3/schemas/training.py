@@ -272,6 +272,13 @@ class PolicyConfig(_Config):
                     "(gate_radius; weight gate_supervision) and one-hot at use: in training the offsets follow the "
                     "label (teacher forcing), in prediction the classifier's argmax, so an anchor is never shifted "
                     "halfway to an object.")
+    held_offsets: bool = Field(
+        default=False,
+        description="With 'hard' anchor_gating, the classifier may also pick 'object k relative to the object the "
+                    "arm holds' (a token within models.objects.HELD_RADIUS of a closed gripper): its offset is k's "
+                    "centroid minus the held object's, so a place anchor is 'target + offset - where the object sits "
+                    "in the hand', as the expert computes it; off: every anchor relative to one object's centroid "
+                    "and the gripper (rung 15).")
     gate_radius: float = Field(
         default=0.15, gt=0,
         description="Metres: an anchor further than this from every object token's centroid belongs to no object "
@@ -290,7 +297,15 @@ class PolicyConfig(_Config):
             raise ValueError("gate_supervision: needs anchored_offsets")
         if self.anchor_gating == "hard" and not (self.anchored_offsets and self.gate_supervision):
             raise ValueError("anchor_gating: 'hard' needs anchored_offsets and gate_supervision > 0 (the classifier's loss weight)")
+        if self.held_offsets and self.anchor_gating != "hard":
+            raise ValueError("held_offsets: needs anchor_gating 'hard'")
         return self
+
+    @property
+    def gate_choices(self) -> int:
+        """Offsets a gate can pick per (slot, arm), besides none: the object tokens, and with
+        ``held_offsets`` each (object k, held object j != k) pair as well (``object_tokens ** 2`` in all)."""
+        return self.object_tokens ** 2 if self.held_offsets else self.object_tokens
 
     @property
     def cond_dim(self) -> int:

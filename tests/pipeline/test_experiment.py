@@ -47,11 +47,25 @@ def test_a_bad_experiment_config_names_the_file_and_field(tmp_path):
     assert res.exit_code == 2 and "missing.yaml" in res.output and not (tmp_path / "o").exists()
 
 
+def test_the_recipe_experiment_is_the_recipe_as_its_anchors_arm_evaluated_as_the_recipe_evaluates():
+    from pathlib import Path
+
+    from anchordp3.schemas.recipe import load_recipe_config
+
+    configs = Path(__file__).resolve().parents[2] / "configs"
+    exp, recipe = load_experiment_config(configs / "experiment_recipe.yaml"), load_recipe_config(configs / "recipe.yaml")
+    assert exp.run == recipe.run and exp.training == recipe.training
+    opts, same = exp.eval.options(first_seed=1199), recipe.eval.options(first_seed=1199)
+    for field in ("episodes", "workers", "max_decisions", "through", "samples", "ddim_steps", "first_seed"):
+        assert getattr(opts, field) == getattr(same, field), field
+    assert opts.ddim_steps == 5
+
+
 def test_the_experiment_runs_both_arms_at_the_same_render_budget(ray_session, tmp_path):
     cfg = ExperimentConfig.model_validate({
         "run": tiny_data("avd", ["place_mouse"], "0-3", anchors={"dagger": {"fraction": 0.2}, "dense": {"frame_stride": 12}}),
         "training": tiny_training(3, 3, 3, loop={"log_interval_s": 30.0, "cpu_threads": 1}, device="cpu"),
-        "eval": {"episodes": 1, "workers": 1, "max_decisions": 2},
+        "eval": {"episodes": 1, "workers": 1, "max_decisions": 2, "ddim_steps": 2},
     })
     results = run_experiment(tmp_path, cfg)
     a, d = results["arms"]["anchors"], results["arms"]["dense"]

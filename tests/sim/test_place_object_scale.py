@@ -88,6 +88,20 @@ def test_arm_and_scale_are_on_the_objects_side(task_name: str) -> None:
         assert np.sign(world.objects["scale"].pose.p[0]) == np.sign(x_obj)
 
 
+@pytest.mark.parametrize("task_name", ["place_mouse", "place_stapler"])
+def test_expert_grasps_turn_with_the_object_and_never_jump_by_half_a_turn(task_name: str) -> None:
+    """Across scenes the finger yaw is the object's yaw plus one fixed offset (not plus or minus
+    π by scene), and the grasp still closes across the object's width."""
+    offsets = []
+    for seed in range(24):
+        world, task = build(task_name, seed, RANDOMIZED, render=False)
+        _, finger = task.grasp_pose()
+        obj_yaw = entity_yaw(world.objects[task.noun].pose)
+        offsets.append(np.angle(np.exp(1j * (finger - obj_yaw - task.model.grasp_axis))))
+        assert abs(np.sin(finger - obj_yaw - task.model.grasp_axis)) < 1e-6
+    assert np.ptp(offsets) < 1e-6, np.round(offsets, 3)
+
+
 @pytest.mark.parametrize("task_name", TASKS)
 @pytest.mark.parametrize("seed", [0, 1])
 def test_expert_puts_object_on_scale(task_name: str, seed: int) -> None:

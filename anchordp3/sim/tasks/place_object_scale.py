@@ -46,7 +46,11 @@ class ObjectModel:
 
     parts: primitives in the object frame. colour: its colour's name. grasp_point: tool-centre
     target in the object frame (3,). grasp_axis: finger-opening direction in the object frame,
-    radians about z. symmetric_yaw: True when the object may be grasped and placed at any yaw (round
+    radians about z; of the two π-apart finger yaws that grasp the object, the expert takes the one
+    nearest ``rest_yaw + grasp_axis`` (its grasp of the object lying at rest), so over the
+    randomized yaw range the grasp turns with the object and never jumps by π between two scenes
+    (a demonstration set whose grasps jump is bimodal where the policy must be exact).
+    symmetric_yaw: True when the object may be grasped and placed at any yaw (round
     objects), else grasps and placements are π-symmetric about ``grasp_axis``. rest_yaw: the
     object's yaw relative to the table (at spawn) and to the scale (when placed). radius: clearance
     radius of its footprint with the open fingers around it.
@@ -82,7 +86,7 @@ def mouse_model(rng: np.random.Generator) -> ObjectModel:
         parts.append(Part("capsule", (r_side, straight * 0.8), sapien.Pose([-0.1 * straight, y, shell]), rgba))
     wheel = sapien.Pose([0.55 * straight + 0.01, 0, shell + 0.6 * r_top], ACROSS)
     parts.append(Part("cylinder", (0.006, 0.003), wheel, _rgba(rng, DARK["black"]), collide=False))
-    return ObjectModel(parts, colour, (0.0, 0.0, FINGER_TIP_BELOW_TCP + 0.005), np.pi / 2, False, np.pi / 2,
+    return ObjectModel(parts, colour, (0.0, 0.0, FINGER_TIP_BELOW_TCP + 0.005), -np.pi / 2, False, np.pi / 2,
                        max(length / 2, 0.06))
 
 
@@ -112,7 +116,7 @@ def stapler_model(rng: np.random.Generator) -> ObjectModel:
         Part("box", (mag_len / 2, 0.35 * width, (under - mag_bottom) / 2),
              sapien.Pose([-length / 2 + hinge + mag_len / 2, 0, (under + mag_bottom) / 2]), _rgba(rng, (0.6, 0.6, 0.62))),
     ]
-    return ObjectModel(parts, colour, (0.0, 0.0, FINGER_TIP_BELOW_TCP + 0.004), np.pi / 2, False, 0.0,
+    return ObjectModel(parts, colour, (0.0, 0.0, FINGER_TIP_BELOW_TCP + 0.004), -np.pi / 2, False, 0.0,
                        max(length / 2, 0.06))
 
 
@@ -220,7 +224,8 @@ class _PlaceOnScale(Task):
         if self.model.symmetric_yaw:
             finger = HOME_FINGER_YAW
         else:
-            finger = grasp_yaw(entity_yaw(obj.pose) + self.model.grasp_axis, 2)
+            rest = self.model.rest_yaw + self.model.grasp_axis  # not "nearest home": the mouse lies 90 degrees from it
+            finger = grasp_yaw(entity_yaw(obj.pose) + self.model.grasp_axis, 2, preferred=rest)
         return top_down_pose(m[:3, :3] @ np.asarray(self.model.grasp_point) + m[:3, 3], finger), finger
 
     def plan(self, expert: Expert) -> None:
