@@ -29,6 +29,7 @@ from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.training import MODELS, train_models
 from anchordp3.pipeline.work import stage_dir
+from anchordp3.schemas.episode import SeedSet
 from anchordp3.schemas.experiment import ExperimentConfig
 from anchordp3.schemas.records import AnchorsInfo, RolloutInfo
 from anchordp3.schemas.run import RunConfig
@@ -82,7 +83,7 @@ def dense_seed_count(tasks: Sequence[str], seeds: Sequence[int], steps: dict[tup
 
 def dense_arm(cfg: RunConfig, n_seeds: int) -> RunConfig:
     """The dense arm's run config: ``cfg`` with the dense plan on its first ``n_seeds`` seeds."""
-    seeds = ",".join(str(s) for s in cfg.seed_list[:n_seeds])
+    seeds = str(SeedSet((s, s) for s in cfg.seed_list[:n_seeds]))  # compact: "0-35", not "0,1,...,35"
     anchors = cfg.anchors.model_copy(update={"plan": "dense"})
     return cfg.model_copy(update={"name": f"{cfg.name}-dense", "seeds": seeds, "anchors": anchors})
 

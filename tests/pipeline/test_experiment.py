@@ -32,6 +32,7 @@ def test_dense_arm_is_the_same_run_with_the_dense_plan_on_a_seed_prefix():
     cfg = RunConfig.model_validate(tiny_data("x", ["place_mouse"], "3,5-7"))
     dense = dense_arm(cfg, 2)
     assert dense.seed_list == [3, 5] and dense.anchors.plan == "dense" and dense.name == "x-dense"
+    assert dense_arm(cfg, 4).seeds == "3,5-7"  # written as ranges, as the report shows them
     assert dense.cameras == cfg.cameras and dense.features == cfg.features
 
 
