@@ -324,6 +324,7 @@ def eval_(
     address: str = typer.Option(None, "--address", help="Ray cluster address (default: $RAY_ADDRESS, else a local Ray)."),
     ddim_steps: int = typer.Option(None, "--ddim-steps", min=1, max=100, help="DDIM steps per decision (default: the policy's own, 10 as DP3; 5 costs half and, on the shipped policy, +0.1 cm first-anchor error)."),
     samples: int = typer.Option(1, "--samples", min=1, max=64, help="Anchor sequences drawn per decision; their medoid is carried out (1: one sample, as the report)."),
+    noise_scale: float = typer.Option(None, "--noise-scale", min=0.0, max=1.0, help="Scale of the noise each decision's sampling starts from: 1 a random draw (DP3, the report), 0 the prior's mean, deterministic (default: the policy's own)."),
 ) -> None:
     """Closed-loop evaluation: success rate per task with 95 % intervals, table, chart, report in <run>/eval (or --out)."""
     from anchordp3.pipeline.evaluation import EXECUTE_THROUGH, EvalOptions, evaluation_summary, run_evaluation
@@ -332,7 +333,7 @@ def eval_(
         raise ValueError(f"--through: expected one of {list(EXECUTE_THROUGH)}, got {through!r}")
     opts = EvalOptions(episodes=episodes, workers=workers, max_decisions=max_decisions, device=device, address=address,
                        first_seed=first_seed, through=through, models=models, out=out, preset=preset, seeds=seeds, ddim_steps=ddim_steps,
-                       samples=samples, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()) if tasks else None)
+                       samples=samples, noise_scale=noise_scale, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()) if tasks else None)
     records = run_evaluation(run_dir, opts)
     typer.echo(evaluation_summary(records))
     typer.echo(f"report: {(out or Path(run_dir) / 'eval') / 'report.md'}")
@@ -388,12 +389,13 @@ def export_pretrained(
     dest: Path = typer.Option(None, "--dest", help="Destination folder (default: the package's pretrained/, what `--models pretrained` loads)."),
     command: str = typer.Option("", "--command", help="The command that made the models, recorded beside them."),
     ddim_steps: int = typer.Option(None, "--ddim-steps", min=1, max=100, help="DDIM steps per decision of the shipped policy (default: the ones it was trained with)."),
+    noise_scale: float = typer.Option(None, "--noise-scale", min=0.0, max=1.0, help="Scale of the noise the shipped policy's sampling starts from: 1 a random draw (DP3), 0 the prior's mean, deterministic (default: its own)."),
 ) -> None:
     """Ship a run's three models as a self-contained models folder (EMA policy weights, the
     classifier's changed tensors only), with their manifests, training config and run config."""
     from anchordp3.pipeline.shipping import ship_models
 
-    typer.echo(ship_models(run_dir, dest, command, ddim_steps))
+    typer.echo(ship_models(run_dir, dest, command, ddim_steps, noise_scale))
 
 
 @export_app.command("lerobot")

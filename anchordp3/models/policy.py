@@ -216,9 +216,14 @@ class AnchorDiffusionPolicy(nn.Module):
         """Which offset each labelled anchor takes: ``anchors (B, H, D)``, ``state (B, D)`` data units,
         ``tokens (B, K, features)`` -> ``(B, H, arms, gate_choices)`` float32 one-hot or zero: the
         object it lies by (``nearest_token_gates`` within ``gate_radius``) and, with ``held_offsets``,
-        relative to the object the arm holds now (``held_tokens``) when that is another one."""
+        relative to the object the arm holds now (``held_tokens``) when that is another one; zero
+        (no object) for an anchor within ``stay_radius`` of the arm's end effector now."""
         positions = torch.stack([anchors[:, :, self.layout.ee_xyz(arm)] for arm in ARMS], dim=2)  # (B, H, arms, 3)
         near = nearest_token_gates(positions, tokens, self.config.gate_radius)  # (B, H, arms, K)
+        if self.config.stay_radius:
+            now = torch.stack([state[:, self.layout.ee_xyz(arm)] for arm in ARMS], dim=1)  # (B, arms, 3)
+            moves = (positions - now[:, None]).norm(dim=-1) >= self.config.stay_radius  # (B, H, arms)
+            near = near * moves[..., None].to(near.dtype)
         if not self.config.held_offsets:
             return near
         grippers = torch.stack([state[:, self.layout.gripper(arm)] for arm in ARMS], dim=-1)
@@ -251,13 +256,15 @@ class AnchorDiffusionPolicy(nn.Module):
 
     @torch.no_grad()
     def predict(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None,
-                steps: int | None = None, samples: int = 1) -> torch.Tensor:
+                steps: int | None = None, samples: int = 1, noise_scale: float | None = None) -> torch.Tensor:
         """DDIM sampling of the next anchors. obs: points (B, N, C), state (B, action_dim),
         task_id (B,) -> anchors (B, horizon, action_dim) float32 in data units (unnormalised).
 
         The initial noise comes from ``generator`` (CPU) when given; the DDIM steps are
         deterministic, so the same generator seed gives the same anchors. ``steps``: DDIM steps
-        (None: the config's ``scheduler.num_inference_steps``). ``samples``: anchor sequences
+        (None: the config's ``scheduler.num_inference_steps``); ``noise_scale``: the initial noise's
+        scale (None: the config's ``scheduler.init_noise_scale``; 0 starts from the prior's mean, and
+        the prediction no longer depends on ``generator``). ``samples``: anchor sequences
         drawn per observation (K, one encoder pass); with K > 1 the one returned is their medoid
         (``medoid``), a consensus that drops a stray sample yet stays one of the samples. Call on
         the EMA copy (``ExponentialMovingAverage.averaged_model``) in evaluation."""
@@ -272,6 +279,7 @@ class AnchorDiffusionPolicy(nn.Module):
             tokens = None if tokens is None else tokens.repeat_interleave(samples, 0)
         shift = self.anchored_shift(None if self.anchor_gates is None else self.gates(cond), tokens)
         x = torch.randn((b * samples, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
+        x = x * (self.config.scheduler.init_noise_scale if noise_scale is None else noise_scale)
         steps = self.config.scheduler.num_inference_steps if steps is None else steps
         if not 1 <= steps <= self.config.scheduler.num_train_timesteps:
             raise ValueError(f"ddim steps: {steps} outside 1..{self.config.scheduler.num_train_timesteps}")

@@ -63,7 +63,9 @@ class EvalOptions:
     unseen seeds from ``first_seed``); out: the evaluation folder (None: ``<run>/eval``); preset:
     the randomization preset of the evaluation scenes (None: the training data's); ddim_steps: DDIM
     steps per decision (None: the policy's own, 10 as DP3); samples: anchor sequences drawn per
-    decision, their medoid carried out (1: one sample, as DP3 and the report)."""
+    decision, their medoid carried out (1: one sample, as DP3 and the report); noise_scale: the
+    scale of the noise each decision's sampling starts from (None: the policy's own; 1 a random
+    draw, as DP3 and the report; 0 the prior's mean)."""
 
     episodes: int = 10
     workers: int = 2
@@ -81,6 +83,7 @@ class EvalOptions:
     preset: str | None = None
     ddim_steps: int | None = None
     samples: int = 1
+    noise_scale: float | None = None
 
 
 def models_folder(run_dir: Path | None, models: str | None) -> Path:
@@ -172,7 +175,7 @@ class EvalWorker:
     """Loads the models once, then runs episodes one at a time."""
 
     def __init__(self, models_dir: str, out_dir: str, cfg_json: str, device: str, ddim_steps: int | None = None,
-                 samples: int = 1):
+                 samples: int = 1, noise_scale: float | None = None):
         import torch
 
         from anchordp3.stages.evaluate import EvalModels
@@ -180,7 +183,7 @@ class EvalWorker:
         torch.set_num_threads(1)
         self.out = Path(out_dir)
         self.cfg = RunConfig.model_validate_json(cfg_json)
-        self.models = EvalModels(Path(models_dir), device, ddim_steps, samples)
+        self.models = EvalModels(Path(models_dir), device, ddim_steps, samples, noise_scale)
 
     def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None,
             through: str) -> tuple[dict, tuple[WorkerRecord, ...]]:
@@ -218,6 +221,8 @@ def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerp
         part["ddim_steps"] = opts.ddim_steps
     if opts.samples != 1:
         part["samples"] = opts.samples
+    if opts.noise_scale is not None:
+        part["noise_scale"] = opts.noise_scale
     return Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([PROTOCOL_MODULE]),  # read, not imported: the driver stays free of the simulator
                        config_hash=config_hash(part), upstream=upstream)
 
@@ -255,7 +260,8 @@ def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts
         n = max(1, min(opts.workers, len(pending)))
         device, gpus = actor_device(opts.device, n)
         workers = [EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(
-            str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps, opts.samples) for _ in range(n)]
+            str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps, opts.samples, opts.noise_scale)
+            for _ in range(n)]
         strip_seeds = set(seeds[:opts.strips])
 
         def submit(w, ep):

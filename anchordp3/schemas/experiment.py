@@ -28,13 +28,14 @@ class ExperimentEvalConfig(BaseModel):
     through: Literal["pose", "joints"] = Field(default="pose", description="Carry out an anchor through its end-effector poses (IK) or its joint angles (the report).")
     samples: int = Field(default=1, ge=1, le=64, description="Anchor sequences drawn per decision, their medoid carried out (1: one sample, as the report).")
     ddim_steps: int | None = Field(default=None, ge=1, le=100, description="DDIM steps per decision (None: the policy's own, its config's scheduler.num_inference_steps).")
+    noise_scale: float | None = Field(default=None, ge=0, le=1, description="Scale of the noise each decision's sampling starts from: 1 a random draw (DP3, the report), 0 the prior's mean (None: the policy's own, its config's scheduler.init_noise_scale).")
 
     def options(self, **extra) -> EvalOptions:
         """These settings as ``EvalOptions``, with ``extra`` (seeds, out, address, ...) beside them."""
         from anchordp3.pipeline.evaluation import EvalOptions
 
         base = dict(episodes=self.episodes, workers=self.workers, max_decisions=self.max_decisions,
-                    through=self.through, samples=self.samples, ddim_steps=self.ddim_steps)
+                    through=self.through, samples=self.samples, ddim_steps=self.ddim_steps, noise_scale=self.noise_scale)
         return EvalOptions(**{**base, **extra})
 
 

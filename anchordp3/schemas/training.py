@@ -193,6 +193,12 @@ class DiffusionSchedulerConfig(_Config):
 
     num_train_timesteps: int = Field(default=100, ge=1, description="Noise levels used in training.")
     num_inference_steps: int = Field(default=10, ge=1, description="DDIM denoising steps per prediction.")
+    init_noise_scale: float = Field(
+        default=1.0, ge=0, le=1,
+        description="Scale of the Gaussian noise that DDIM sampling starts from: 1, a draw from the prior (DP3 and "
+                    "the report); 0, the prior's mean, so a prediction is the deterministic DDIM path of the "
+                    "observation alone (ladder rung 21: the first anchor 1.87 cm off instead of 2.32, yet 361 of 450 "
+                    "episodes instead of 370, some stalled); in between, a lower temperature. Only sampling reads it.")
     beta_schedule: Literal["squaredcos_cap_v2", "linear", "scaled_linear"] = Field(default="squaredcos_cap_v2", description="Noise schedule.")
     clip_sample: bool = Field(default=True, description="Clip the predicted clean sample to [-1, 1] at each step.")
     prediction_type: Literal["sample", "epsilon"] = Field(default="sample", description="What the U-Net predicts: the clean anchors or the noise.")
@@ -279,6 +285,13 @@ class PolicyConfig(_Config):
                     "centroid minus the held object's, so a place anchor is 'target + offset - where the object sits "
                     "in the hand', as the expert computes it; off: every anchor relative to one object's centroid "
                     "and the gripper (rung 15).")
+    stay_radius: float = Field(
+        default=0.0, ge=0,
+        description="Metres: a labelled anchor whose end effector lies within this distance of the current one is "
+                    "'in place' (a gripper closing or opening where it stands) and its gate target is 'no object', so "
+                    "it is predicted relative to the state rather than to an object's centroid, whose error (about a "
+                    "centimetre) it would otherwise inherit; 0: every anchor by an object is relative to it (rung 18; "
+                    "needs anchor_gating 'hard' when > 0).")
     gate_radius: float = Field(
         default=0.15, gt=0,
         description="Metres: an anchor further than this from every object token's centroid belongs to no object "
@@ -299,6 +312,8 @@ class PolicyConfig(_Config):
             raise ValueError("anchor_gating: 'hard' needs anchored_offsets and gate_supervision > 0 (the classifier's loss weight)")
         if self.held_offsets and self.anchor_gating != "hard":
             raise ValueError("held_offsets: needs anchor_gating 'hard'")
+        if self.stay_radius and self.anchor_gating != "hard":
+            raise ValueError("stay_radius: needs anchor_gating 'hard'")
         return self
 
     @property

@@ -3,7 +3,9 @@ wherever the scene, the point order or a stray mislabelled point."""
 
 from __future__ import annotations
 
+import pytest
 import torch
+from pydantic import ValidationError
 
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.objects import (POSITION_SCALE, TOKEN_FEATURES, cluster_critical_points, nearest_token_gates, object_tokens,
@@ -129,9 +131,6 @@ def test_orientation_tells_an_object_from_its_mirror_image_where_the_spread_cann
 
 
 def test_the_policy_reads_object_orientation_only_with_tokens() -> None:
-    import pytest
-    from pydantic import ValidationError
-
     config = TINY.model_copy(update={"object_tokens": 2, "object_orientation": True})
     policy = AnchorDiffusionPolicy(config)
     assert policy.object_encoder.net[0].in_features == 2 * token_features(True)
@@ -164,9 +163,6 @@ def test_anchored_offsets_add_the_gated_object_offsets_to_end_effector_positions
 
 
 def test_anchored_offsets_need_object_tokens_and_relative_sample_targets() -> None:
-    import pytest
-    from pydantic import ValidationError
-
     for bad in ({"object_tokens": 0}, {"target": "absolute"}):
         with pytest.raises(ValidationError, match="anchored_offsets"):
             ANCHORED.model_validate({**ANCHORED.model_dump(), **bad})
@@ -286,9 +282,6 @@ def test_hard_gating_trains_its_offsets_on_the_labelled_objects() -> None:
 
 
 def test_hard_gating_needs_its_classifier_loss() -> None:
-    import pytest
-    from pydantic import ValidationError
-
     with pytest.raises(ValidationError, match="anchor_gating"):
         ANCHORED.model_validate({**ANCHORED.model_dump(), "anchor_gating": "hard"})
 
@@ -348,3 +341,53 @@ def test_held_offsets_place_where_the_object_sits_in_the_hand() -> None:
         errors[name] = float((pred[:, 0, left] - test["anchors"][:, 0, left]).norm(dim=-1).mean())
     assert errors["held"] < 0.01, errors  # metres
     assert errors["held"] < 0.5 * errors["target"], errors
+
+
+STAY = HELD.model_copy(update={"stay_radius": 0.01})
+
+
+def in_place_scenes(seeds: range) -> dict[str, torch.Tensor]:
+    """Scenes where the left gripper stands open at the small object, up to 2 cm off its centroid
+    in the table plane and 2 cm above it (where the expert brought it), the big object anywhere in a
+    20 x 20 cm square, labelled 'close where you stand' in the first slot and 'lift 5 cm' after."""
+    pts, states, anchors = [], [], []
+    left, grip = LAYOUT.ee_xyz("left"), LAYOUT.gripper("left")
+    for s in seeds:
+        points, state, truth = scene(s)
+        g = torch.Generator().manual_seed(3000 + s)
+        points[0, 400:550, :2] += (torch.rand(2, generator=g) - 0.5) * 0.2  # the big blob moves
+        state[0, left] = truth[1] + torch.cat([(torch.rand(2, generator=g) - 0.5) * 0.04, torch.tensor([0.02])])
+        state[0, grip], state[0, LAYOUT.gripper("right")] = 1.0, 1.0
+        close = state[0].clone()
+        close[grip] = 0.0
+        lift = close.clone()
+        lift[left] = lift[left] + torch.tensor([0.0, 0.0, 0.05])
+        pts.append(points[0]), states.append(state[0]), anchors.append(torch.stack([close] + [lift] * 7))
+    return {"points": torch.stack(pts), "state": torch.stack(states), "anchors": torch.stack(anchors),
+            "task_id": torch.zeros(len(seeds), dtype=torch.long)}
+
+
+def test_an_anchor_in_place_is_labelled_relative_to_the_state_not_to_an_object() -> None:
+    batch = in_place_scenes(range(1))
+    tokens = object_tokens(batch["points"], batch["state"], LAYOUT, 2)  # big first, the small one second
+    by_object = AnchorDiffusionPolicy(HELD).gate_targets(tokens, batch["anchors"], batch["state"])
+    in_place = AnchorDiffusionPolicy(STAY).gate_targets(tokens, batch["anchors"], batch["state"])
+    small = [0.0, 0.0, 0.0, 1.0]  # (small, small): entry 1 * 2 + 1, relative to the gripper
+    assert by_object[0, 0, 0].tolist() == small and in_place[0, 0, 0].sum() == 0  # the close: by no object
+    assert in_place[0, 1:, 0].tolist() == [small] * 7  # the lift moves 5 cm: still by the small object
+    with pytest.raises(ValidationError, match="stay_radius"):
+        ANCHORED.model_validate({**ANCHORED.model_dump(), "stay_radius": 0.01})
+
+
+def test_a_close_in_place_stays_in_place_when_labelled_relative_to_the_state() -> None:
+    """Predicted relative to the object, a close in place inherits the error of reading the
+    gripper's offset from the object off the tokens; relative to the state it is 'do not move'."""
+    train, test = in_place_scenes(range(16)), in_place_scenes(range(100, 108))
+    errors = {}
+    for name, config in (("object", HELD), ("state", STAY)):
+        policy = fitted(config, train, 300)
+        pred = policy.predict(test, generator=torch.Generator().manual_seed(1))
+        left = LAYOUT.ee_xyz("left")
+        errors[name] = float((pred[:, 0, left] - test["anchors"][:, 0, left]).norm(dim=-1).mean())
+    assert errors["state"] < 0.005, errors  # metres
+    assert errors["state"] < 0.5 * errors["object"], errors

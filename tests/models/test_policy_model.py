@@ -170,6 +170,15 @@ def test_fewer_ddim_steps_can_be_asked_for_at_decision_time() -> None:
         policy.predict(obs, steps=0)
 
 
+def test_sampling_from_the_priors_mean_is_deterministic_and_configurable() -> None:
+    policy, obs = fitted_policy(2)
+    draws = [policy.predict(obs, generator=torch.Generator().manual_seed(s), noise_scale=0.0) for s in (0, 1)]
+    assert torch.equal(draws[0], draws[1])  # the noise seed no longer matters
+    assert not torch.equal(draws[0], policy.predict(obs, generator=torch.Generator().manual_seed(0)))  # the config's 1
+    policy.config = policy.config.model_copy(update={"scheduler": policy.config.scheduler.model_copy(update={"init_noise_scale": 0.0})})
+    assert torch.equal(policy.predict(obs, generator=torch.Generator().manual_seed(5)), draws[0])
+
+
 def test_the_medoid_is_the_sample_nearest_the_others_and_ignores_a_stray_one() -> None:
     base = torch.zeros(2, 1, 1)
     rows = torch.stack([torch.cat([base + 0.0, base + 0.1, base + 0.3, base + 9.0, base + 0.2]),  # the stray pulls the mean to 1.92
