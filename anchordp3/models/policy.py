@@ -184,6 +184,29 @@ class AnchorDiffusionPolicy(nn.Module):
             shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a].float(), offsets[:, :, a])
         return shift * self.delta_normalizer.scale.view(h, d).to(shift.dtype)
 
+    def residual_scales(self, gates: torch.Tensor) -> torch.Tensor:
+        """What the diffused residual is divided by, ``(B, H, D)``: ``residual_scale`` in arm a's
+        end-effector x and y (the table plane) of slot h where ``gates (B, H, arms, gate_choices)``
+        pick an object there (the anchor is an object's offset plus a residual of a few
+        centimetres), 1 elsewhere (z keeps its scale: a pre-grasp's 10-15 cm above the centroid
+        would not fit the U-Net's range divided)."""
+        scale = gates.new_ones((gates.shape[0], self.config.horizon, self.config.action_dim), dtype=torch.float32)
+        for a, arm in enumerate(ARMS):
+            picked = gates[:, :, a].float().sum(-1, keepdim=True) > 0  # (B, H, 1)
+            xy = slice(self.layout.ee_xyz(arm).start, self.layout.ee_xyz(arm).start + 2)
+            scale[:, :, xy] = torch.where(picked, self.config.residual_scale, 1.0).expand(-1, -1, 2)
+        return scale
+
+    def residual_frame(self, gates: torch.Tensor, tokens: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(shift, scale)``, each ``(B, H, D)`` in normalised target units, of ``residual_scale``'s
+        diffusion: the clean sample is ``(x0 - shift) / scale`` and decodes as ``shift + scale * z``.
+        ``shift`` is the gated offsets (``anchored_shift``) and, where the residual is scaled, the
+        normalised value of "no move" too, so that a residual of 0 cm is 0 whatever the normaliser's
+        centre; ``state (B, D)`` data units."""
+        scale = self.residual_scales(gates)
+        still = self.to_target(state[:, None, :].expand(-1, self.config.horizon, -1), state)  # "no move", (B, H, D)
+        return self.anchored_shift(gates, tokens) + still * (scale != 1), scale
+
     def compute_loss(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
         """Diffusion training loss of one batch: MSE over all (B, H, action_dim) elements, plus the
         gates' loss (``gate_loss``) weighted by ``gate_supervision``.
@@ -197,6 +220,15 @@ class AnchorDiffusionPolicy(nn.Module):
         x0 = self.to_target(anchors, state)
         noise = torch.randn(x0.shape, generator=generator).to(self.device)
         steps = torch.randint(0, self.noise_scheduler.config.num_train_timesteps, (x0.shape[0],), generator=generator).to(self.device)
+        if self.config.residual_scale < 1:  # diffuse the residual around the labelled objects' offsets (hard gating)
+            with autocast(self.device, self.mixed_precision):
+                cond, tokens = self._condition(batch)
+            labels = self.gate_targets(tokens, anchors, state)
+            shift, scale = self.residual_frame(labels, tokens, state)
+            z0 = (x0 - shift) / scale
+            with autocast(self.device, self.mixed_precision):
+                pred = self.unet(self.noise_scheduler.add_noise(z0, noise, steps), steps, cond)
+            return F.mse_loss(pred.float(), z0) + self.config.gate_supervision * self.gate_loss(cond, labels)
         noisy = self.noise_scheduler.add_noise(x0, noise, steps)
         with autocast(self.device, self.mixed_precision):
             cond, tokens = self._condition(batch)
@@ -277,7 +309,9 @@ class AnchorDiffusionPolicy(nn.Module):
         if samples > 1:
             cond = cond.repeat_interleave(samples, 0)
             tokens = None if tokens is None else tokens.repeat_interleave(samples, 0)
-        shift = self.anchored_shift(None if self.anchor_gates is None else self.gates(cond), tokens)
+        gates = None if self.anchor_gates is None else self.gates(cond)
+        shift = self.anchored_shift(gates, tokens)
+        residual = self.config.residual_scale < 1  # the DDIM runs over (x0 - shift) / scale
         x = torch.randn((b * samples, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
         x = x * (self.config.scheduler.init_noise_scale if noise_scale is None else noise_scale)
         steps = self.config.scheduler.num_inference_steps if steps is None else steps
@@ -289,7 +323,11 @@ class AnchorDiffusionPolicy(nn.Module):
         for i, t in enumerate(scheduler.timesteps):
             with autocast(self.device, self.mixed_precision):
                 out = self.unet(x, t, cond, film=None if table is None else [f[i] for f in table])
-            x = scheduler.step(out.float() + shift, t, x).prev_sample
+            x = scheduler.step(out.float() if residual else out.float() + shift, t, x).prev_sample
+        if residual:
+            frame, scale = self.residual_frame(gates, tokens, torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32)
+                                               .repeat_interleave(samples, 0))
+            x = frame + x * scale
         if samples > 1:
             x = medoid(x.view(b, samples, *x.shape[1:]))
         return self.from_target(x, torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32))

@@ -285,6 +285,13 @@ class PolicyConfig(_Config):
                     "centroid minus the held object's, so a place anchor is 'target + offset - where the object sits "
                     "in the hand', as the expert computes it; off: every anchor relative to one object's centroid "
                     "and the gripper (rung 15).")
+    residual_scale: float = Field(
+        default=1.0, gt=0, le=1,
+        description="With 'hard' anchor_gating, below 1: the diffusion runs over the anchors minus the chosen "
+                    "objects' offsets, and where an object is chosen (that slot's and arm's end-effector x and y) "
+                    "the residual is divided by this, so it fills the U-Net's range and the U-Net's error shrinks with "
+                    "it (the relative-target normaliser maps 50-70 cm of moves to [-1, 1]: a centimetre is 0.03); "
+                    "1: the U-Net's output is added to the offsets at the moves' scale (rung 20).")
     stay_radius: float = Field(
         default=0.0, ge=0,
         description="Metres: a labelled anchor whose end effector lies within this distance of the current one is "
@@ -312,6 +319,8 @@ class PolicyConfig(_Config):
             raise ValueError("anchor_gating: 'hard' needs anchored_offsets and gate_supervision > 0 (the classifier's loss weight)")
         if self.held_offsets and self.anchor_gating != "hard":
             raise ValueError("held_offsets: needs anchor_gating 'hard'")
+        if self.residual_scale < 1 and self.anchor_gating != "hard":
+            raise ValueError("residual_scale: below 1 needs anchor_gating 'hard'")
         if self.stay_radius and self.anchor_gating != "hard":
             raise ValueError("stay_radius: needs anchor_gating 'hard'")
         return self

@@ -391,3 +391,29 @@ def test_a_close_in_place_stays_in_place_when_labelled_relative_to_the_state() -
         errors[name] = float((pred[:, 0, left] - test["anchors"][:, 0, left]).norm(dim=-1).mean())
     assert errors["state"] < 0.005, errors  # metres
     assert errors["state"] < 0.5 * errors["object"], errors
+
+
+def test_a_residual_diffused_at_a_finer_scale_decodes_to_the_offsets_plus_it() -> None:
+    """With residual_scale the U-Net's clean sample is (target - offsets) / scale in the gated
+    end-effector x, y: decoding multiplies back and adds the offsets, elsewhere nothing changes."""
+    policy = AnchorDiffusionPolicy(STAY.model_copy(update={"residual_scale": 0.25}))
+    gates = torch.zeros(1, 8, len(ARMS), 4)
+    gates[0, 0, 0, 3] = 1.0  # slot 0, left arm: an object
+    scale = policy.residual_scales(gates)[0]
+    left = LAYOUT.ee_xyz("left")
+    assert scale[0, left].tolist() == [0.25, 0.25, 1.0] and scale[1:].eq(1).all() and scale[0, LAYOUT.ee_xyz("right")].eq(1).all()
+    assert (scale == 1).sum() == scale.numel() - 2
+    with pytest.raises(ValidationError, match="residual_scale"):
+        ANCHORED.model_validate({**ANCHORED.model_dump(), "residual_scale": 0.5})
+
+
+def test_a_finer_residual_scale_places_the_in_hand_object_more_precisely() -> None:
+    """The place of held_scenes, learnt at the moves' scale and at a quarter of it."""
+    train, test = held_scenes(range(16)), held_scenes(range(100, 108))
+    errors = {}
+    for name, config in (("coarse", HELD), ("fine", HELD.model_copy(update={"residual_scale": 0.25}))):
+        policy = fitted(config, train, 300)
+        pred = policy.predict(test, generator=torch.Generator().manual_seed(1))
+        left = LAYOUT.ee_xyz("left")
+        errors[name] = float((pred[:, 0, left][:, :2] - test["anchors"][:, 0, left][:, :2]).norm(dim=-1).mean())
+    assert errors["fine"] < errors["coarse"], errors
