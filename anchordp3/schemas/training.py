@@ -291,7 +291,8 @@ class PolicyConfig(_Config):
                     "objects' offsets, and where an object is chosen (that slot's and arm's end-effector x and y) "
                     "the residual is divided by this, so it fills the U-Net's range and the U-Net's error shrinks with "
                     "it (the relative-target normaliser maps 50-70 cm of moves to [-1, 1]: a centimetre is 0.03); "
-                    "1: the U-Net's output is added to the offsets at the moves' scale (rung 20).")
+                    "1: the U-Net's output is added to the offsets at the moves' scale (rung 20; ladder rung 22: "
+                    "0.25 brought the grasp descent 0.4-0.7 cm closer, yet 362 of 450 episodes against 370).")
     stay_radius: float = Field(
         default=0.0, ge=0,
         description="Metres: a labelled anchor whose end effector lies within this distance of the current one is "
