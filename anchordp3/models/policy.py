@@ -309,9 +309,12 @@ class AnchorDiffusionPolicy(nn.Module):
         if samples > 1:
             cond = cond.repeat_interleave(samples, 0)
             tokens = None if tokens is None else tokens.repeat_interleave(samples, 0)
+        state = torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32)
         gates = None if self.anchor_gates is None else self.gates(cond)
-        shift = self.anchored_shift(gates, tokens)
-        residual = self.config.residual_scale < 1  # the DDIM runs over (x0 - shift) / scale
+        residual = self.config.residual_scale < 1  # the DDIM runs over (x0 - frame) / scale, decoded at the end
+        if residual:
+            frame, scale = self.residual_frame(gates, tokens, state.repeat_interleave(samples, 0))
+        shift = 0.0 if residual else self.anchored_shift(gates, tokens)
         x = torch.randn((b * samples, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
         x = x * (self.config.scheduler.init_noise_scale if noise_scale is None else noise_scale)
         steps = self.config.scheduler.num_inference_steps if steps is None else steps
@@ -323,14 +326,12 @@ class AnchorDiffusionPolicy(nn.Module):
         for i, t in enumerate(scheduler.timesteps):
             with autocast(self.device, self.mixed_precision):
                 out = self.unet(x, t, cond, film=None if table is None else [f[i] for f in table])
-            x = scheduler.step(out.float() if residual else out.float() + shift, t, x).prev_sample
+            x = scheduler.step(out.float() + shift, t, x).prev_sample
         if residual:
-            frame, scale = self.residual_frame(gates, tokens, torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32)
-                                               .repeat_interleave(samples, 0))
             x = frame + x * scale
         if samples > 1:
             x = medoid(x.view(b, samples, *x.shape[1:]))
-        return self.from_target(x, torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32))
+        return self.from_target(x, state)
 
     def to_target(self, anchors: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """Anchors ``(B, H, D)`` in data units -> the normalised diffusion target ``(B, H, D)``:

@@ -21,6 +21,7 @@ import torch
 from anchordp3.pipeline.evaluation import PRETRAINED_DIR, RUN_CONFIG_FILE
 from anchordp3.pipeline.store import MANIFEST, read_manifest
 from anchordp3.pipeline.training import MODELS, TRAINING_FILE, model_dir, trained_model
+from anchordp3.schemas.training import DiffusionSchedulerConfig
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.training_loop import load_checkpoint
 
@@ -101,8 +102,8 @@ def ship_models(run_dir: Path, dest: Path | None = None, command: str = "", ddim
     run_config = run_dir / RUN_CONFIG_FILE if shipped else run_dir / "config.yaml"
     atomic_write_bytes(tmp / RUN_CONFIG_FILE, run_config.read_bytes())
     total = sum(sizes.values())
-    steps = configs["policy"]["scheduler"]["num_inference_steps"]
-    scale = configs["policy"]["scheduler"].get("init_noise_scale", 1.0)
+    sampling = DiffusionSchedulerConfig.model_validate(configs["policy"]["scheduler"])  # defaults for older checkpoints
+    steps, scale = sampling.num_inference_steps, sampling.init_noise_scale
     origin = f"From the {'models folder' if shipped else 'run'} `{run_dir.name}`"
     lines = ["# Shipped models", "", origin + (f", made by `{command}`." if command else "."), "",
              "| model | model.pt MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.2f} |" for k, v in sizes.items()] + \

@@ -329,16 +329,23 @@ def test_held_offsets_label_a_place_relative_to_the_object_in_the_closed_gripper
     torch.testing.assert_close(table[3, 1], centroids[1] - batch["state"][0, LAYOUT.ee_xyz("right")], atol=1e-6, rtol=0)
 
 
+def first_left_errors(configs: dict, train: dict[str, torch.Tensor], test: dict[str, torch.Tensor],
+                      axes: int = 3) -> dict[str, float]:
+    """Each named config fitted on ``train`` (300 steps): the mean distance (metres) between its
+    first predicted anchor's left end effector and the label on ``test``, over its first ``axes``
+    coordinates (3: xyz, 2: the table plane)."""
+    left = LAYOUT.ee_xyz("left")
+    errors = {}
+    for name, config in configs.items():
+        pred = fitted(config, train, 300).predict(test, generator=torch.Generator().manual_seed(1))
+        errors[name] = float((pred[:, 0, left][:, :axes] - test["anchors"][:, 0, left][:, :axes]).norm(dim=-1).mean())
+    return errors
+
+
 def test_held_offsets_place_where_the_object_sits_in_the_hand() -> None:
     """The place that follows from the in-hand offset: on unseen scenes, anchoring it to the held
     object beats anchoring it to the target alone."""
-    train, test = held_scenes(range(16)), held_scenes(range(100, 108))
-    errors = {}
-    for name, config in (("target", HARD), ("held", HELD)):
-        policy = fitted(config, train, 300)
-        pred = policy.predict(test, generator=torch.Generator().manual_seed(1))
-        left = LAYOUT.ee_xyz("left")
-        errors[name] = float((pred[:, 0, left] - test["anchors"][:, 0, left]).norm(dim=-1).mean())
+    errors = first_left_errors({"target": HARD, "held": HELD}, held_scenes(range(16)), held_scenes(range(100, 108)))
     assert errors["held"] < 0.01, errors  # metres
     assert errors["held"] < 0.5 * errors["target"], errors
 
@@ -382,13 +389,7 @@ def test_an_anchor_in_place_is_labelled_relative_to_the_state_not_to_an_object()
 def test_a_close_in_place_stays_in_place_when_labelled_relative_to_the_state() -> None:
     """Predicted relative to the object, a close in place inherits the error of reading the
     gripper's offset from the object off the tokens; relative to the state it is 'do not move'."""
-    train, test = in_place_scenes(range(16)), in_place_scenes(range(100, 108))
-    errors = {}
-    for name, config in (("object", HELD), ("state", STAY)):
-        policy = fitted(config, train, 300)
-        pred = policy.predict(test, generator=torch.Generator().manual_seed(1))
-        left = LAYOUT.ee_xyz("left")
-        errors[name] = float((pred[:, 0, left] - test["anchors"][:, 0, left]).norm(dim=-1).mean())
+    errors = first_left_errors({"object": HELD, "state": STAY}, in_place_scenes(range(16)), in_place_scenes(range(100, 108)))
     assert errors["state"] < 0.005, errors  # metres
     assert errors["state"] < 0.5 * errors["object"], errors
 
@@ -409,11 +410,6 @@ def test_a_residual_diffused_at_a_finer_scale_decodes_to_the_offsets_plus_it() -
 
 def test_a_finer_residual_scale_places_the_in_hand_object_more_precisely() -> None:
     """The place of held_scenes, learnt at the moves' scale and at a quarter of it."""
-    train, test = held_scenes(range(16)), held_scenes(range(100, 108))
-    errors = {}
-    for name, config in (("coarse", HELD), ("fine", HELD.model_copy(update={"residual_scale": 0.25}))):
-        policy = fitted(config, train, 300)
-        pred = policy.predict(test, generator=torch.Generator().manual_seed(1))
-        left = LAYOUT.ee_xyz("left")
-        errors[name] = float((pred[:, 0, left][:, :2] - test["anchors"][:, 0, left][:, :2]).norm(dim=-1).mean())
+    errors = first_left_errors({"coarse": HELD, "fine": HELD.model_copy(update={"residual_scale": 0.25})},
+                               held_scenes(range(16)), held_scenes(range(100, 108)), axes=2)
     assert errors["fine"] < errors["coarse"], errors
