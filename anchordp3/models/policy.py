@@ -149,7 +149,7 @@ class AnchorDiffusionPolicy(nn.Module):
         tokens = None
         if self.object_encoder is not None:
             tokens = object_tokens(points, state, self.layout, self.config.object_tokens,
-                                   orientation=self.config.object_orientation)
+                                   orientation=self.config.object_orientation, z_weight=self.config.token_z_weight)
             parts.append(self.object_encoder(tokens.to(parts[0].dtype)))
         return torch.cat(parts, dim=-1), tokens
 

@@ -255,6 +255,11 @@ class PolicyConfig(_Config):
         description="Each object token also carries the direction of its points' principal axis in the table plane, "
                     "anisotropy x (cos 2θ, sin 2θ) (models.objects.principal_axis): the yaw at which an elongated object "
                     "is grasped, which the per-axis spread cannot tell apart from its mirror image (needs object_tokens > 0).")
+    token_z_weight: float = Field(
+        default=1.0, gt=0,
+        description="The object tokens' clustering counts heights this many times over (models.objects): above 1, "
+                    "an object held over another (a place) is clustered apart from it instead of the pile being cut "
+                    "in two across; 1: plain Euclidean k-means (rung 20; ladder rung 23 measures 5).")
     object_encoder_dim: int = Field(default=64, ge=1, description="Width of the object tokens' feature in the FiLM condition (with object_tokens > 0).")
     anchored_offsets: bool = Field(
         default=False,
@@ -314,6 +319,8 @@ class PolicyConfig(_Config):
             raise ValueError("anchored_offsets: needs object_tokens > 0, target 'relative' and scheduler.prediction_type 'sample'")
         if self.object_orientation and not self.object_tokens:
             raise ValueError("object_orientation: needs object_tokens > 0")
+        if self.token_z_weight != 1 and not self.object_tokens:
+            raise ValueError("token_z_weight: needs object_tokens > 0")
         if self.gate_supervision and not self.anchored_offsets:
             raise ValueError("gate_supervision: needs anchored_offsets")
         if self.anchor_gating == "hard" and not (self.anchored_offsets and self.gate_supervision):

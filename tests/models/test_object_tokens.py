@@ -53,6 +53,51 @@ def test_a_stray_critical_point_does_not_seed_an_object() -> None:
     assert (centres[0] - truth).norm(dim=-1).max() < 0.01
 
 
+def held_over_scale() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A scale's top (a 14 x 12 cm slab's upper face, the part under the object hidden) with a
+    10 x 6 x 3 cm object held 1.5 cm above it, as the cameras see a place from above.
+    Returns xyz (1, N, 3), critical (1, N) and the two true centroids (2, 3), scale first."""
+    xs, ys = torch.meshgrid(torch.linspace(-0.07, 0.07, 29), torch.linspace(-0.06, 0.06, 25), indexing="ij")
+    top = torch.stack([xs.flatten(), ys.flatten(), torch.full((xs.numel(),), 0.76)], dim=1)
+    scale = top[(top[:, 0].abs() > 0.05) | (top[:, 1].abs() > 0.03)]  # the ring the object does not hide
+    ox, oy = torch.meshgrid(torch.linspace(-0.05, 0.05, 21), torch.linspace(-0.03, 0.03, 13), indexing="ij")
+    face = torch.stack([ox.flatten(), oy.flatten(), torch.full((ox.numel(),), 0.805)], dim=1)
+    rim = face[(face[:, 0].abs() > 0.049) | (face[:, 1].abs() > 0.029)]
+    obj = torch.cat([face, *(rim - torch.tensor([0.0, 0.0, dz]) for dz in (0.01, 0.02))])  # top and sides
+    xyz = torch.cat([scale, obj])[None]
+    return xyz, torch.ones(xyz.shape[:2], dtype=torch.bool), torch.stack([scale.mean(0), obj.mean(0)])
+
+
+def test_counting_heights_over_keeps_an_object_held_over_the_scale_apart_from_it() -> None:
+    xyz, critical, truth = held_over_scale()
+    _, plain = cluster_critical_points(xyz, critical, 2)
+    _, stretched = cluster_critical_points(xyz, critical, 2, z_weight=5.0)
+    assert (plain[0] - truth).norm(dim=-1).max() > 0.02  # plain k-means cuts the pile in two across
+    torch.testing.assert_close(stretched[0], truth, atol=1e-3, rtol=0)  # in metres, largest (the scale) first
+
+
+def test_counting_heights_over_leaves_objects_side_by_side_as_they_were() -> None:
+    points, _, truth = scene()
+    critical = points[..., -1] > 0.5
+    plain, stretched = (cluster_critical_points(points[..., :3], critical, 2, z_weight=w) for w in (1.0, 5.0))
+    assert torch.equal(plain[0][critical], stretched[0][critical])  # the same objects
+    torch.testing.assert_close(stretched[1][0], truth, atol=2e-3, rtol=0)
+
+
+def test_the_policy_clusters_its_tokens_with_its_configured_height_weight() -> None:
+    policy = AnchorDiffusionPolicy(TINY.model_copy(update={"object_tokens": 2, "token_z_weight": 5.0}))
+    xyz, critical, _ = held_over_scale()
+    feats = torch.cat([xyz, torch.rand(*xyz.shape[:2], 8, generator=torch.Generator().manual_seed(0))], dim=-1)
+    batch = {**samples(1), "points": append_critical_probability(feats, critical.float())}
+    policy.set_normalizers(stats_of(batch))
+    points, state = batch["points"], batch["state"]
+    expected = object_tokens(points, state, LAYOUT, 2, z_weight=5.0)
+    assert not torch.equal(expected, object_tokens(points, state, LAYOUT, 2))
+    torch.testing.assert_close(policy._condition(batch)[1], expected)
+    with pytest.raises(ValidationError, match="token_z_weight"):
+        TINY.model_validate({**TINY.model_dump(), "token_z_weight": 5.0})
+
+
 def test_tokens_follow_the_scene_and_not_the_point_order() -> None:
     points, state, truth = scene()
     tokens = object_tokens(points, state, LAYOUT, 2)
