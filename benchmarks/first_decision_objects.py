@@ -14,7 +14,9 @@ run's dataset, with the simulator's labels as reference:
   probabilities (cm).
 
 The segmenter's probabilities are the run's cache (``models/policy/critical_prob-*.npy``, written
-by ``train policy``). Meant for the single-arm place tasks (two critical objects).
+by ``train policy``), or with ``--segmenter PATH`` (a ``model.pt``) those of any segmenter, computed
+here at the first decisions only, so two segmenters can be compared on the same held-out scenes.
+Meant for the single-arm place tasks (two critical objects).
 Last line: ``RESULT val_object_recall=X val_missed_share=Y fit_cm_labels=Z fit_cm_segmenter=W``.
 """
 
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -32,6 +35,7 @@ import torch  # noqa: E402
 from anchordp3.dataset.reader import open_dataset  # noqa: E402
 from anchordp3.models.objects import cluster_critical_points, object_tokens  # noqa: E402
 from anchordp3.schemas.stages import FRAME_KINDS  # noqa: E402
+from anchordp3.stages.train_segmenter import load_segmenter  # noqa: E402
 from anchordp3.schemas.state import ARMS, StateLayout  # noqa: E402
 from anchordp3.viz.table import text_table  # noqa: E402
 
@@ -50,23 +54,45 @@ def first_decisions(data, split: str) -> list[int]:
     return sorted(i for _, i in first.values())
 
 
-def collect(data, prob: np.ndarray, split: str) -> dict[str, np.ndarray]:
-    """Per first decision: object recall, wrong points, tokens (labels / segmenter), target, task."""
+def collect(data, prob: Callable[[int, np.ndarray], np.ndarray], split: str) -> dict[str, np.ndarray]:
+    """Per first decision: object recall, wrong points, tokens (labels / segmenter), target, task.
+    prob: (sample index, points (N, 11)) -> the segmenter's critical probability (N,)."""
     rows = {k: [] for k in ("recall", "wrong", "tok_label", "tok_seg", "target", "task")}
     for i in first_decisions(data, split):
         s = data.sample(i, ("points", "labels", "state", "anchors"))
-        label, seg = s["labels"] > 0, prob[i] > 0.5
+        p = prob(i, s["points"])
+        label, seg = s["labels"] > 0, p > 0.5
         assign, _ = cluster_critical_points(torch.from_numpy(s["points"][None, :, :3]), torch.from_numpy(label[None]), 2)
         obj = label & (assign[0].numpy() == 1)
         rows["recall"].append((seg & obj).sum() / max(obj.sum(), 1))
         rows["wrong"].append((seg & ~label).sum())
-        for key, channel in (("tok_label", label), ("tok_seg", prob[i])):
+        for key, channel in (("tok_label", label), ("tok_seg", p)):
             pts = np.concatenate([s["points"], np.asarray(channel, np.float32)[:, None]], axis=1)
             rows[key].append(object_tokens(torch.from_numpy(pts[None]), torch.from_numpy(s["state"][None]), LAYOUT, 2).flatten().numpy())
         moves = [np.linalg.norm(s["anchors"][0, LAYOUT.ee_xyz(a)] - s["state"][LAYOUT.ee_xyz(a)]) for a in ARMS]
         rows["target"].append(s["anchors"][0, LAYOUT.ee_xyz(ARMS[int(np.argmax(moves))])])
         rows["task"].append(int(s["task_id"]))
     return {k: np.asarray(v) for k, v in rows.items()}
+
+
+def cached_probabilities(run: Path) -> Callable[[int, np.ndarray], np.ndarray]:
+    """The run's cache of the segmenter's probabilities, written by ``train policy``."""
+    caches = sorted((run / "models" / "policy").glob("critical_prob-*.npy"))
+    if not caches:
+        raise SystemExit(f"{run / 'models' / 'policy'}: no cached segmenter probabilities; train the policy first "
+                         "(or give --segmenter)")
+    prob = np.load(caches[0]).astype(np.float32)
+    return lambda i, _points: prob[i]
+
+
+def segmenter_probabilities(path: Path) -> Callable[[int, np.ndarray], np.ndarray]:
+    """The probabilities of the segmenter in ``path`` (a ``model.pt``), computed per sample."""
+    model = load_segmenter(path)
+
+    @torch.no_grad()
+    def prob(_i: int, points: np.ndarray) -> np.ndarray:
+        return model.probabilities(torch.from_numpy(np.asarray(points, np.float32))[None])[0].numpy()
+    return prob
 
 
 def fit_cm(train: dict, val: dict, key: str, task: int) -> float:
@@ -80,24 +106,27 @@ def fit_cm(train: dict, val: dict, key: str, task: int) -> float:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run", type=Path)
+    ap.add_argument("--segmenter", type=Path, default=None, help="a segmenter model.pt (default: the run's cached probabilities)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     data = open_dataset(args.run / "dataset")
-    caches = sorted((args.run / "models" / "policy").glob("critical_prob-*.npy"))
-    if not caches:
-        raise SystemExit(f"{args.run / 'models' / 'policy'}: no cached segmenter probabilities; train the policy first")
-    prob = np.load(caches[0]).astype(np.float32)
+    prob = segmenter_probabilities(args.segmenter) if args.segmenter else cached_probabilities(args.run)
     got = {split: collect(data, prob, split) for split in ("train", "validation")}
     rows = [[split, len(g["recall"]), f"{g['recall'].mean():.2f}", f"{(g['recall'] < 0.5).mean():.0%}", f"{g['wrong'].mean():.1f}"]
             for split, g in got.items()]
     print(text_table(["split", "first decisions", "object recall", "object mostly missed", "wrong points"], rows))
+    val = got["validation"]
+    per_task = [[name, int((val["task"] == t).sum()), f"{val['recall'][val['task'] == t].mean():.2f}",
+                 int((val["recall"][val["task"] == t] < 0.6).sum()), f"{val['wrong'][val['task'] == t].mean():.1f}"]
+                for t, name in enumerate(data.tasks)]
+    print()
+    print(text_table(["task (validation)", "first decisions", "object recall", "recall < 0.6", "wrong points"], per_task))
     fits = []
     for t, name in enumerate(data.tasks):
         fits.append([name, f"{fit_cm(got['train'], got['validation'], 'tok_label', t):.2f}",
                      f"{fit_cm(got['train'], got['validation'], 'tok_seg', t):.2f}"])
     print()
     print(text_table(["task", "fit from tokens, labels (cm)", "fit from tokens, segmenter (cm)"], fits))
-    val = got["validation"]
     lab = np.mean([float(r[1]) for r in fits])
     seg = np.mean([float(r[2]) for r in fits])
     print(f"RESULT val_object_recall={val['recall'].mean():.3f} val_missed_share={(val['recall'] < 0.5).mean():.3f} "

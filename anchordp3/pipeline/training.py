@@ -41,6 +41,7 @@ from anchordp3.schemas.dataset import INFO_FILE
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.records import ModelInfo
 from anchordp3.schemas.run import config_hash, load_run_config
+from anchordp3.schemas.sections import overlay
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 from anchordp3.schemas.training import TrainingConfig, training_preset
 from anchordp3.stages.files import atomic_write_bytes
@@ -74,20 +75,13 @@ def load_training_config(path: Path | None = None, preset: str = "cpu", steps: i
     ``optim.steps``) and ``device``. Errors name the file and the field."""
     data: dict[str, Any] = training_preset(preset).model_dump(mode="json")
     if path is not None:
-        data = _merge(data, read_yaml_mapping(path, "training config"))
+        data = overlay(data, read_yaml_mapping(path, "training config"))
     if steps is not None:
         for name in MODELS:
             data[name]["optim"]["steps"] = steps
     if device is not None:
         data["device"] = device
     return validate_mapping(TrainingConfig, data, path)
-
-
-def _merge(base: dict, overlay: dict) -> dict:
-    out = dict(base)
-    for k, v in overlay.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 
 
 def model_config_part(cfg: TrainingConfig, name: str) -> dict:

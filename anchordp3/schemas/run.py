@@ -13,6 +13,7 @@ from anchordp3.schemas.dataset import WriteConfig
 from anchordp3.schemas.episode import SeedSet, parse_seed_set
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 from anchordp3.schemas.randomization import PRESETS
+from anchordp3.schemas.sections import PartialSections
 from anchordp3.schemas.sim import SimConfig, WorldConfig
 from anchordp3.schemas.randomization import preset as preset_config
 from anchordp3.schemas.stages import AnchorsConfig, FeaturesConfig, RenderConfig
@@ -27,8 +28,8 @@ class PoolConfig(BaseModel):
     gpus: float | None = Field(default=None, ge=0, description="GPUs per actor; None = automatic (render actors share the GPUs when the cluster has any, other stages use none).")
 
 
-class PoolsConfig(BaseModel):
-    """One pool per data stage."""
+class PoolsConfig(PartialSections):
+    """One pool per data stage (a pool given in part keeps the rest of its own default)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 

@@ -18,6 +18,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from anchordp3.schemas.sections import PartialSections
 from anchordp3.schemas.tasks import TASK_NAMES, task_id
 
 
@@ -27,7 +28,10 @@ def model_task_ids(dataset_tasks: Sequence[str]) -> list[int]:
     return [task_id(name) for name in dataset_tasks]
 
 
-class _Config(BaseModel):
+class _Config(PartialSections):
+    """A training config section: unknown fields rejected, frozen, sections given in part keep their
+    own defaults (``schemas.sections``)."""
+
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
