@@ -35,8 +35,8 @@ import torch  # noqa: E402
 from anchordp3.dataset.reader import open_dataset  # noqa: E402
 from anchordp3.models.objects import cluster_critical_points, object_tokens  # noqa: E402
 from anchordp3.schemas.stages import FRAME_KINDS  # noqa: E402
-from anchordp3.stages.train_segmenter import load_segmenter  # noqa: E402
 from anchordp3.schemas.state import ARMS, StateLayout  # noqa: E402
+from anchordp3.stages.train_segmenter import load_segmenter  # noqa: E402
 from anchordp3.viz.table import text_table  # noqa: E402
 
 LAYOUT = StateLayout()
