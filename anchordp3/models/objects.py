@@ -150,14 +150,18 @@ def token_centroids(tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return tokens[..., :3] / POSITION_SCALE, tokens.abs().sum(-1) > 0
 
 
-def nearest_token_gates(positions: torch.Tensor, tokens: torch.Tensor, radius: float) -> torch.Tensor:
+def nearest_token_gates(positions: torch.Tensor, tokens: torch.Tensor, radius: float,
+                        exclude: torch.Tensor | None = None) -> torch.Tensor:
     """Which object each end-effector position belongs to, as gate targets: ``positions (B, H,
     arms, 3)`` metres, ``tokens (B, k, features)`` -> ``(B, H, arms, k)`` float32, 1 for the present
     token whose centroid lies nearest the position when it is within ``radius`` metres, else 0
-    (a position far from every object, e.g. an arm resting at home, belongs to none)."""
+    (a position far from every object, e.g. an arm resting at home, belongs to none).
+    exclude: ``(B, arms, k)``, nonzero where an arm's positions may not belong to that token."""
     centroids, present = token_centroids(tokens.float())
     d = torch.cdist(positions.float().flatten(1, 2), centroids).unflatten(1, positions.shape[1:3])  # (B, H, arms, k)
     d = d.masked_fill(~present[:, None, None, :], float("inf"))
+    if exclude is not None:
+        d = d.masked_fill(exclude[:, None].bool(), float("inf"))
     near, which = d.min(-1)
     return torch.nn.functional.one_hot(which, tokens.shape[1]).float() * (near < radius)[..., None].float()
 

@@ -249,18 +249,27 @@ class AnchorDiffusionPolicy(nn.Module):
         ``tokens (B, K, features)`` -> ``(B, H, arms, gate_choices)`` float32 one-hot or zero: the
         object it lies by (``nearest_token_gates`` within ``gate_radius``) and, with ``held_offsets``,
         relative to the object the arm holds now (``held_tokens``) when that is another one; zero
-        (no object) for an anchor within ``stay_radius`` of the arm's end effector now."""
+        (no object) for an anchor within ``stay_radius`` of the arm's end effector now. With
+        ``held_destination``, an arm holding object j is labelled by the object nearest where j
+        would be (the anchor plus j's offset from the gripper now), j itself excluded: a place
+        anchor lies by its target, not by the object it carries."""
         positions = torch.stack([anchors[:, :, self.layout.ee_xyz(arm)] for arm in ARMS], dim=2)  # (B, H, arms, 3)
-        near = nearest_token_gates(positions, tokens, self.config.gate_radius)  # (B, H, arms, K)
+        if self.config.held_offsets:
+            grippers = torch.stack([state[:, self.layout.gripper(arm)] for arm in ARMS], dim=-1)
+            held = held_tokens(tokens, grippers)  # (B, arms, K)
+        if self.config.held_destination:  # where the held object would be, by any object but itself
+            grip = torch.einsum("bak,bkac->bac", held, token_gripper_offsets(tokens.float()))  # (B, arms, 3)
+            near = nearest_token_gates(positions + grip[:, None], tokens, self.config.gate_radius, exclude=held)
+        else:
+            near = nearest_token_gates(positions, tokens, self.config.gate_radius)  # (B, H, arms, K)
         if self.config.stay_radius:
             now = torch.stack([state[:, self.layout.ee_xyz(arm)] for arm in ARMS], dim=1)  # (B, arms, 3)
             moves = (positions - now[:, None]).norm(dim=-1) >= self.config.stay_radius  # (B, H, arms)
             near = near * moves[..., None].to(near.dtype)
         if not self.config.held_offsets:
             return near
-        grippers = torch.stack([state[:, self.layout.gripper(arm)] for arm in ARMS], dim=-1)
         eye = torch.eye(tokens.shape[1], device=tokens.device)
-        other = held_tokens(tokens, grippers)[:, None, :, None, :] * (1 - eye)  # (B, 1, arms, K, K): holds j != k
+        other = held[:, None, :, None, :] * (1 - eye)  # (B, 1, arms, K, K): holds j != k
         pick = other + eye * (1 - other.sum(-1, keepdim=True))  # (k, j): held j != k, else (k, k)
         return (near[..., None] * pick).flatten(-2)
 

@@ -294,6 +294,14 @@ class PolicyConfig(_Config):
                     "centroid minus the held object's, so a place anchor is 'target + offset - where the object sits "
                     "in the hand', as the expert computes it; off: every anchor relative to one object's centroid "
                     "and the gripper (rung 15).")
+    held_destination: bool = Field(
+        default=False,
+        description="With held_offsets, an anchor of an arm that holds object j is labelled by the object nearest "
+                    "where j would be (the anchor's end effector plus j's offset from the gripper now), j itself "
+                    "excluded, so a place is 'the target's centroid minus the held object's, plus a residual'; "
+                    "none within gate_radius: relative to the state. Off: by the object nearest the anchor's end "
+                    "effector, which for a carried object is mostly the held one, so a place followed the held "
+                    "object's centroid, blind to the target (rungs 18-23; traced in ladder rung 25).")
     residual_scale: float = Field(
         default=1.0, gt=0, le=1,
         description="With 'hard' anchor_gating, below 1: the diffusion runs over the anchors minus the chosen "
@@ -331,6 +339,8 @@ class PolicyConfig(_Config):
             raise ValueError("anchor_gating: 'hard' needs anchored_offsets and gate_supervision > 0 (the classifier's loss weight)")
         if self.held_offsets and self.anchor_gating != "hard":
             raise ValueError("held_offsets: needs anchor_gating 'hard'")
+        if self.held_destination and not self.held_offsets:
+            raise ValueError("held_destination: needs held_offsets")
         if self.residual_scale < 1 and self.anchor_gating != "hard":
             raise ValueError("residual_scale: below 1 needs anchor_gating 'hard'")
         if self.stay_radius and self.anchor_gating != "hard":

@@ -374,6 +374,51 @@ def test_held_offsets_label_a_place_relative_to_the_object_in_the_closed_gripper
     torch.testing.assert_close(table[3, 1], centroids[1] - batch["state"][0, LAYOUT.ee_xyz("right")], atol=1e-6, rtol=0)
 
 
+DESTINATION = HELD.model_copy(update={"held_destination": True})
+
+
+def carried_over_target() -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """The small object carried 10 cm above the big one (the left gripper closed 3 cm above the
+    small object's centroid), labelled 'descend 4 cm': the anchor lies 1 cm from the carried
+    object's centroid now and 9 cm from the target's. Returns the batch and its tokens."""
+    points, state, truth = scene(0)
+    lift = truth[0] + torch.tensor([0.01, 0.0, 0.10]) - truth[1]
+    points[0, 550:610, :3] += lift  # the small blob (rows 550-609) over the big one
+    left = LAYOUT.ee_xyz("left")
+    state[0, left] = truth[1] + lift + torch.tensor([0.0, 0.0, 0.03])
+    state[0, LAYOUT.gripper("left")], state[0, LAYOUT.gripper("right")] = 0.3, 1.0
+    target = state[0].clone()
+    target[left] -= torch.tensor([0.0, 0.0, 0.04])
+    batch = {"points": points, "state": state, "anchors": target.expand(1, 8, 32).clone(), "task_id": torch.zeros(1, dtype=torch.long)}
+    return batch, object_tokens(points, state, LAYOUT, 2, z_weight=5.0)
+
+
+def test_held_destination_labels_a_place_by_its_target_not_by_the_carried_object() -> None:
+    batch, tokens = carried_over_target()
+    torch.testing.assert_close(tokens[0, 1, :3] / POSITION_SCALE, batch["points"][0, 550:610, :3].mean(0), atol=0.01, rtol=0)
+    old = AnchorDiffusionPolicy(HELD).gate_targets(tokens, batch["anchors"], batch["state"])
+    assert old[0, :, 0].tolist() == [[0.0, 0.0, 0.0, 1.0]] * 8  # nearest the anchor: the carried object itself
+    new = AnchorDiffusionPolicy(DESTINATION).gate_targets(tokens, batch["anchors"], batch["state"])
+    assert new[0, :, 0].tolist() == [[0.0, 1.0, 0.0, 0.0]] * 8  # (big, held small): the target minus the carried
+
+
+def test_held_destination_labels_a_move_away_from_every_other_object_by_none() -> None:
+    """Lifting the held object where no other object lies within gate_radius of where it goes:
+    relative to the state (no gate), never to the carried object's own centroid."""
+    batch, tokens = held_scenes(range(1)), None
+    left = LAYOUT.ee_xyz("left")
+    batch["anchors"] = batch["state"][:, None].expand(1, 8, 32).clone()
+    batch["anchors"][0, :, left] += torch.tensor([-0.05, -0.05, 0.05])  # away from the big object
+    tokens = object_tokens(batch["points"], batch["state"], LAYOUT, 2)
+    assert AnchorDiffusionPolicy(DESTINATION).gate_targets(tokens, batch["anchors"], batch["state"])[0, :, 0].sum() == 0
+    assert AnchorDiffusionPolicy(HELD).gate_targets(tokens, batch["anchors"], batch["state"])[0, :, 0, 3].all()
+
+
+def test_held_destination_needs_held_offsets() -> None:
+    with pytest.raises(ValidationError, match="held_destination"):
+        HARD.model_validate({**HARD.model_dump(), "held_destination": True})
+
+
 def first_left_errors(configs: dict, train: dict[str, torch.Tensor], test: dict[str, torch.Tensor],
                       axes: int = 3) -> dict[str, float]:
     """Each named config fitted on ``train`` (300 steps): the mean distance (metres) between its
