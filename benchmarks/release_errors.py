@@ -57,6 +57,7 @@ class ReleaseWatch:
         self.task_id = task_id(task)
         self.rows: list[dict] = []
         self.rest_z: float | None = None
+        self.tolerance_cm = 0.0  # the task's xy success tolerance, read at the first decision
 
     def gate(self, points: np.ndarray, state: np.ndarray, arm: str) -> tuple[str, np.ndarray | None]:
         """The gate the policy picks for the first anchor of ``arm`` (stay, object, pair or -) and
@@ -82,7 +83,7 @@ class ReleaseWatch:
         task, arm = ep.task, ep.task.arm
         p = np.asarray(ep.world.objects[task.noun].pose.p, dtype=np.float64)
         if self.rest_z is None:
-            self.rest_z = float(p[2])
+            self.rest_z, self.tolerance_cm = float(p[2]), 100 * task.xy_tolerance
         state = ep.robot.state()
         g = ep.layout.gripper(arm)
         goal = task.functional_point()
@@ -103,7 +104,7 @@ def _xyz(v: np.ndarray) -> str:
     return ",".join(f"{x:+.3f}" for x in v)
 
 
-def cause(success: bool, w: ReleaseWatch, tolerance_cm: float) -> str | None:
+def cause(success: bool, w: ReleaseWatch) -> str | None:
     """The failure's cause (module docstring), None on success."""
     if success:
         return None
@@ -113,7 +114,7 @@ def cause(success: bool, w: ReleaseWatch, tolerance_cm: float) -> str | None:
     if not opened:
         return "never_released"
     first = opened[0]
-    if first["xy_cm"] > tolerance_cm:
+    if first["xy_cm"] > w.tolerance_cm:
         return "released_off"
     if first["up_cm"] > HIGH_CM:
         return "released_high"
@@ -137,15 +138,8 @@ def main() -> int:
     for task in opts.tasks:
         for seed in parse_seeds(args.seeds, "--seeds"):
             w = ReleaseWatch(models, task)
-            tolerance = None
-
-            def watch(ep, decision, points, pred, w=w):
-                nonlocal tolerance
-                tolerance = 100 * ep.task.xy_tolerance
-                w(ep, decision, points, pred)
-
-            rec = evaluate_episode(task, seed, models, cfg, watch=watch)
-            why = cause(rec.success, w, tolerance or 0.0)
+            rec = evaluate_episode(task, seed, models, cfg, watch=w)
+            why = cause(rec.success, w)
             n, n_ok = n + 1, n_ok + rec.success
             if why:
                 counts[why] += 1
