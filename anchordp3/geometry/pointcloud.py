@@ -61,7 +61,7 @@ def backproject(
         keep = crop_box(points.astype(np.float32), *box)
         points, flat = points[keep], flat[keep]
 
-    # Colours and labels by flat pixel number: one take, ~3x faster than indexing (H, W) by (v, u).
+    # Colours and labels by flat pixel number, one take each (the view: 1.40 -> 1.22 ms at 120 x 160).
     colors = None
     if rgb is not None:
         rgb = np.asarray(rgb)

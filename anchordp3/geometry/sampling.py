@@ -21,8 +21,8 @@ except ImportError:  # pragma: no cover - exercised only where fpsample is not i
     fpsample = None
 
 # Height h of the kd-line tree (2**h buckets): log2(M) - 7 (buckets of ~128-256 points) measured
-# fastest on the features stage's cropped clouds (M ~ 7k: h = 5, 2x faster than h = 7 at N = 1024
-# and 4096) and still 6-7 for 20k-150k points; kept within [1, 7].
+# fastest on the features stage's cropped clouds (M ~ 7-12k: h = 5-6, 1.5x faster than h = 7 at
+# N = 1024 and 4096); from 16k points on it is 7, the height measured fastest for 20k-150k.
 _KDLINE_BUCKET_BITS = 7
 _KDLINE_MAX_HEIGHT = 7
 
