@@ -176,7 +176,7 @@ def demo(
     seeds: str = typer.Option(None, help="Seeds per task (default: the embedded config's)."),
     address: str = typer.Option(None, help="Ray cluster to join (default: $RAY_ADDRESS, else a local Ray)."),
     episodes: int = typer.Option(1, "--episodes", min=1, help="Evaluation episodes per task."),
-    max_decisions: int = typer.Option(20, "--max-decisions", min=1, help="Cap on policy calls per evaluation episode of the demo's own policy."),
+    max_decisions: int = typer.Option(8, "--max-decisions", min=1, help="Cap on policy calls per evaluation episode of the demo's own policy."),
     data_only: bool = typer.Option(False, "--data-only", help="Stop after the data stages."),
 ) -> None:
     """The whole system on the embedded tiny default (configs/demo.yaml): data, training,

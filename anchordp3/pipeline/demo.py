@@ -46,7 +46,7 @@ class DemoOptions:
     demo's own (0: skip)."""
 
     episodes: int = 1
-    max_decisions: int | None = 20
+    max_decisions: int | None = 8
     pretrained_max_decisions: int | None = 40
     workers: int = 2
     train: bool = True
