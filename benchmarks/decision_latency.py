@@ -67,7 +67,7 @@ def main() -> int:
     pts = torch.from_numpy(points)[None]
 
     def segment():
-        with torch.no_grad():
+        with torch.inference_mode():  # as ``EvalModels.anchors`` decides
             return models.segmenter.probabilities(pts)
 
     decide = lambda: models.anchors(points, obs.state, task, 1)  # noqa: E731  segmenter + policy, DDIM included
