@@ -55,18 +55,15 @@ def backproject(
     cam2world = np.asarray(cam2world, dtype=np.float64)
     # World point = R_c2w (d K^-1 [u v 1]^T) + t_c2w; fold R_c2w K^-1 into one 3x3 matrix and
     # evaluate it one world axis at a time (no (P, 3) temporaries, no BLAS call on a 3-wide
-    # matrix): the same float32 points as the stacked matmul, 1.3x faster on one thread (4 views:
+    # matrix): float32 points identical to the stacked matmul's on 440 rendered views, 1.3x faster on one thread (4 views:
     # 4.8 -> 3.7 ms at 160 x 120, 18.5 -> 14 ms at 320 x 240).
     ray2world = cam2world[:3, :3] @ np.linalg.inv(np.asarray(K, dtype=np.float64))
     u, v = u.astype(np.float64), v.astype(np.float64)
     points = np.empty((len(flat), 3), np.float32)
-    keep = None
     for axis in range(3):
         points[:, axis] = (u * ray2world[axis, 0] + v * ray2world[axis, 1] + ray2world[axis, 2]) * d + cam2world[axis, 3]
-        if box is not None:  # crop_box's test, one axis at a time on the float32 coordinates
-            inside = (points[:, axis] >= box[0][axis]) & (points[:, axis] <= box[1][axis])
-            keep = inside if keep is None else keep & inside
-    if keep is not None:
+    if box is not None:
+        keep = crop_box(points, *box)
         points, flat = points[keep], flat[keep]
 
     # Colours and labels by flat pixel number, one take each (the view: 1.40 -> 1.22 ms at 120 x 160).
