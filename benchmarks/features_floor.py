@@ -37,6 +37,7 @@ import anchordp3.geometry.features as geometry_features  # noqa: E402
 from anchordp3.pipeline.store import read_manifest  # noqa: E402
 from anchordp3.pipeline.work import stage_dir  # noqa: E402
 from anchordp3.schemas.run import load_run_config  # noqa: E402
+from anchordp3.schemas.stages import FeaturesConfig  # noqa: E402
 from anchordp3.stages.features import run_features  # noqa: E402
 from anchordp3.viz.table import text_table  # noqa: E402
 
@@ -56,32 +57,34 @@ STEPS = (
 )
 
 
-class RecordingTree(geometry_features.NeighbourTree):
-    """The stage's tree, noting every query batch ``(points, queries, k)`` for the replay."""
+StageTree = geometry_features.NeighbourTree
+QUERIES: list[tuple[np.ndarray, np.ndarray, int]] = []  # (points, queries, k) of each batch the stage asked
 
-    calls: list[tuple[np.ndarray, np.ndarray, int]] = []
+
+class RecordingTree(StageTree):
+    """The stage's tree, noting every query batch in ``QUERIES`` for the replay."""
 
     def query(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        RecordingTree.calls.append((self.points, np.array(queries), k))
+        QUERIES.append((self.points, np.array(queries), k))
         return super().query(queries, k)
 
 
-def render_cost(run: Path) -> tuple[float, int, list[tuple[str, Path]]]:
-    """The render stage's CPU seconds and frames over all its done items, and their frame files."""
+def render_cost(run: Path) -> tuple[float, list[tuple[str, Path, int]]]:
+    """The render stage's CPU seconds over all its done items, and their ``(item, frames file,
+    frames)``."""
     folder = stage_dir(run, "render")
     manifest = read_manifest(folder)
     if manifest is None or not manifest.items:
         raise SystemExit(f"{folder}: no render manifest; run the render stage first")
-    cpu, frames, files = 0.0, 0, []
+    cpu, files = 0.0, []
     for rec in sorted(manifest.items.values(), key=lambda r: r.item):
         if rec.status != "done" or rec.cpu_seconds is None:
             continue
         path = folder / rec.output
         with np.load(path, allow_pickle=False) as z:
-            frames += len(z["t"])
+            files.append((rec.item, path, len(z["t"])))
         cpu += rec.cpu_seconds
-        files.append((rec.item, path))
-    return cpu, frames, files
+    return cpu, files
 
 
 def step_times(stats: pstats.Stats) -> dict[str, float]:
@@ -101,21 +104,21 @@ def replay(calls: list[tuple[np.ndarray, np.ndarray, int]], scipy: bool) -> floa
     c0, tree, last = time.process_time(), None, None
     for points, queries, k in calls:
         if points is not last:
-            tree, last = geometry_features.NeighbourTree(points, scipy=scipy), points
+            tree, last = StageTree(points, scipy=scipy), points
         tree.query(queries, k)
     return time.process_time() - c0
 
 
-def run_episodes(files: list[tuple[str, Path]], cfg, profile: cProfile.Profile | None) -> float:
-    """Run the features stage on each ``(item, frames file)`` into a scratch folder, under
+def run_episodes(files: list[tuple[str, Path, int]], cfg: FeaturesConfig, profile: cProfile.Profile | None) -> float:
+    """Run the features stage on each ``(item, frames file, frames)`` into a scratch folder, under
     ``profile`` when given; returns the CPU seconds (this process)."""
     with tempfile.TemporaryDirectory() as out:
         c0 = time.process_time()
-        for item, path in files:
+        for item, path, _ in files:
             task, seed = item.split("/")
             if profile is not None:
                 profile.enable()
-            run_features(task, int(seed), path, Path(out), cfg.features)
+            run_features(task, int(seed), path, Path(out), cfg)
             if profile is not None:
                 profile.disable()
         return time.process_time() - c0
@@ -127,35 +130,35 @@ def main() -> int:
     parser.add_argument("--items", type=int, default=8, help="episodes to profile (the first ones by item id)")
     args = parser.parse_args()
     cfg = load_run_config(args.run_dir / "config.yaml")
-    render_cpu, render_frames, files = render_cost(args.run_dir)
+    render_cpu, files = render_cost(args.run_dir)
+    render_frames = sum(n for _, _, n in files)
     render_ms = 1000 * render_cpu / render_frames
 
     with threadpool_limits(limits=1):
-        return measure(args, cfg, files, render_ms, render_frames)
+        return measure(args, cfg.features, files, render_ms, render_frames)
 
 
-def measure(args: argparse.Namespace, cfg, files: list[tuple[str, Path]], render_ms: float, render_frames: int) -> int:
+def measure(args: argparse.Namespace, cfg: FeaturesConfig, files: list[tuple[str, Path, int]], render_ms: float, render_frames: int) -> int:
     """The features side of ``main``, printed (see the module docstring)."""
     chosen = files[: args.items]
-    frames = 0
-    for _, path in chosen:
-        with np.load(path, allow_pickle=False) as z:
-            frames += len(z["t"])
+    frames = sum(n for _, _, n in chosen)
     features_ms = 1000 * run_episodes(chosen, cfg, None) / frames
     profile = cProfile.Profile()
     geometry_features.NeighbourTree = RecordingTree  # the stage's functions look it up at call time
-    run_episodes(chosen, cfg, profile)
-    geometry_features.NeighbourTree = RecordingTree.__mro__[1]
+    try:
+        run_episodes(chosen, cfg, profile)
+    finally:
+        geometry_features.NeighbourTree = StageTree
     steps = step_times(pstats.Stats(profile))
-    knn_ms = {lib: 1000 * replay(RecordingTree.calls, lib == "scipy") / frames for lib in ("pykdtree", "scipy")}
+    knn_ms = {lib: 1000 * replay(QUERIES, lib == "scipy") / frames for lib in ("pykdtree", "scipy")}
     knn_floor = min(knn_ms.values())
     floor_ms = knn_floor + 1000 * sum(steps[name] for name in ("farthest_point_sample", "load_frames", "save_npz")) / frames
 
     rows = [[label, f"{1000 * steps[name] / frames:.2f}"] for label, name in STEPS]
     rows.append(["(kNN steps include the tree's)", ""])
     print(text_table(["features step (cProfile, cumulative)", "ms / frame"], rows))
-    queries = sum(len(q) for _, q, _ in RecordingTree.calls) / frames
-    print(f"\n{frames} frames of {min(args.items, len(files))} episodes; n_points {cfg.features.n_points}, K {cfg.features.k}; "
+    queries = sum(len(q) for _, q, _ in QUERIES) / frames
+    print(f"\n{frames} frames of {len(chosen)} episodes; n_points {cfg.n_points}, K {cfg.k}; "
           f"{queries:.0f} exact kNN queries per frame")
     print(f"per frame, CPU: render {render_ms:.1f} ms (all {render_frames} frames), features {features_ms:.1f} ms (unprofiled)")
     print(f"kNN queries alone, tree build included: pykdtree {knn_ms['pykdtree']:.1f} ms, scipy {knn_ms['scipy']:.1f} ms "

@@ -55,8 +55,8 @@ def backproject(
     cam2world = np.asarray(cam2world, dtype=np.float64)
     # World point = R_c2w (d K^-1 [u v 1]^T) + t_c2w; fold R_c2w K^-1 into one 3x3 matrix and
     # evaluate it one world axis at a time (no (P, 3) temporaries, no BLAS call on a 3-wide
-    # matrix): float32 points identical to the stacked matmul's on 440 rendered views, 1.3x faster on one thread (4 views:
-    # 4.8 -> 3.7 ms at 160 x 120, 18.5 -> 14 ms at 320 x 240).
+    # matrix): float32 points identical to the stacked matmul's on 440 rendered views, 1.3x
+    # faster on one thread (4 views: 4.8 -> 3.7 ms at 160 x 120, 18.5 -> 14 ms at 320 x 240).
     ray2world = cam2world[:3, :3] @ np.linalg.inv(np.asarray(K, dtype=np.float64))
     u, v = u.astype(np.float64), v.astype(np.float64)
     points = np.empty((len(flat), 3), np.float32)
