@@ -424,10 +424,23 @@ class Runner:
         def item_id_of(s, key) -> str:
             return _group_id(key) if s == group else episode_id(*key)
 
+        consumer = {st.name: nxt.name for st, nxt in zip(self.chain, self.chain[1:])
+                    if st.release is not None and nxt.name in enabled}
+
+        def held_back(s: str) -> bool:
+            """Whether ``s``, a stage whose outputs are transient (``release``), is far enough ahead of
+            the stage that consumes them: its unconsumed outputs (the consumer's backlog, plus ``s``'s
+            own calls in flight) fill every consumer actor's queue twice. Bounds their disk."""
+            nxt = consumer.get(s)
+            if nxt is None:
+                return False
+            pending = len(queues[nxt]) + sum(len(b) for st_, _, b in in_flight.values() if st_ in (s, nxt))
+            return pending >= 2 * cap * max(1, len(pools.get(nxt, ())))
+
         def submit(s: str) -> None:
             """Send ``s``'s queued items to its free actors, a batch per call (``_batch_size``)."""
             st, size = self.graph[s], self._batch_size(s)
-            while queues[s] and pools.get(s):
+            while queues[s] and pools.get(s) and not held_back(s):
                 first = item_id_of(s, queues[s][0])
                 free = [a for a in range(len(load[s])) if triage.can_take((s, a), (s, first), load[s][a], cap)]
                 if not free:

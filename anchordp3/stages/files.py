@@ -85,18 +85,22 @@ def sweep_interrupted_writes(root: Path) -> int:
     return swept
 
 
-def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
-    """A compressed ``.npz`` archive of ``arrays`` whose bytes depend only on the arrays."""
+def npz_bytes(arrays: dict[str, np.ndarray], compress: bool = True) -> bytes:
+    """An ``.npz`` archive of ``arrays`` whose bytes depend only on the arrays (and ``compress``).
+
+    compress: deflate every array (zlib level 6, ``np.savez_compressed``'s); False stores them as
+    they are (``np.savez``'s), for files read once and dropped: no deflate to pay, nor inflate."""
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+    with zipfile.ZipFile(buf, "w", method) as zf:
         for name in sorted(arrays):
             info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
-            info.compress_type = zipfile.ZIP_DEFLATED
+            info.compress_type = method
             with zf.open(info, "w") as f:
                 np.lib.format.write_array(f, np.ascontiguousarray(arrays[name]), allow_pickle=False)
     return buf.getvalue()
 
 
-def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Atomically write ``arrays`` as a deterministic ``.npz`` file."""
-    atomic_write_bytes(path, npz_bytes(arrays))
+def save_npz(path: Path, arrays: dict[str, np.ndarray], compress: bool = True) -> None:
+    """Atomically write ``arrays`` as a deterministic ``.npz`` file (``compress``: see ``npz_bytes``)."""
+    atomic_write_bytes(path, npz_bytes(arrays, compress))

@@ -1,7 +1,8 @@
 """Render stage: replay a kept episode and render only its planned frames from every camera.
 
 Input item: a kept episode (rollout arrays) and its frame plan (anchor stage). Output item:
-``frames/<task>/<seed:06d>.npz`` with F planned frames and V views:
+``frames/<task>/<seed:06d>.npz`` with F planned frames and V views (deflated when the frames are
+kept, stored as they are when ``keep_frames: false`` prunes their images once featurised):
 
 - ``rgb (F, V, H, W, 3) uint8``; ``depth (F, V, H, W) float32`` metres, 0 = no hit;
 - ``mask (F, V, H, W) uint8``: 1 on task-critical objects (and the robot, by default);
@@ -60,7 +61,7 @@ def run_render(record: EpisodeRecord, rollout_dir: Path, plan_path: Path, out_di
         "views": np.array([v.name for v in frames[0].views]) if frames else np.array([], dtype=str),
     }
     rel = frames_file(record.task, record.seed)
-    save_npz(Path(out_dir) / rel, arrays)
+    save_npz(Path(out_dir) / rel, arrays, compress=cfg.keep_frames)  # transient images: read once, then pruned
     return rel
 
 

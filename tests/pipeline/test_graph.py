@@ -5,6 +5,7 @@ runs with nothing else changed, and a finished run redoes nothing."""
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -101,3 +102,39 @@ def test_a_run_fingerprinted_under_a_former_config_layout_is_restamped_not_redon
         assert after[s].fingerprint == fps[s] != before[s].fingerprint  # re-stamped for the new layout
     other = CFG.model_copy(update={"tasks": ["place_mouse"]})  # another config is no former layout of this one
     assert "config" in stage_changes(other, tmp_path, new)["noop0"]
+
+
+class MadeInfo(Payload):
+    unconsumed: int = Field(ge=0, description="Outputs made but not yet consumed when this item started.")
+
+
+def _make(run: Path, cfg: RunConfig, item: EpisodeItem) -> StageOutput:
+    made, used = run / "made", run / "used"
+    made.mkdir(exist_ok=True)
+    used.mkdir(exist_ok=True)
+    unconsumed = len({p.name for p in made.iterdir()} - {p.name for p in used.iterdir()})
+    time.sleep(0.05)  # an item per actor call (no batching)
+    (made / f"{item.task}-{item.seed}").touch()
+    return StageOutput(None, None, MadeInfo(unconsumed=unconsumed))
+
+
+def _consume(run: Path, cfg: RunConfig, item: EpisodeItem) -> StageOutput:
+    time.sleep(0.2)  # four times slower than the stage before it
+    (run / "used" / f"{item.task}-{item.seed}").touch()
+    return StageOutput(None, None, NoopStepInfo(seed=item.seed))
+
+
+def test_a_stage_with_transient_outputs_stays_a_few_items_ahead_of_its_consumer(ray_session, tmp_path):
+    """A stage whose outputs are released once consumed (the render stage's frames) waits while its
+    consumer has two calls per actor queued: its unconsumed outputs stay bounded (their disk)."""
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    light = PoolConfig(workers=1, cpus=0.1)
+    make = Stage("make", "make", _make, MadeInfo, __name__, lambda cfg: {}, resources=light, release=lambda run, cfg, rec: None)
+    consume = Stage("consume", "consume", _consume, NoopStepInfo, __name__, lambda cfg: {}, resources=light)
+    graph = Graph((make, consume, noop_graph(1).stages[-1]))
+    cfg = CFG.model_copy(update={"seeds": "0-9"})
+    run_pipeline(cfg, tmp_path, RunOptions(progress_interval=60), graph=graph)
+    made = _records(tmp_path, graph, "make")
+    assert len(made) == 20 and len(_records(tmp_path, graph, "consume")) == 20
+    cap = cfg.execution.in_flight_per_worker
+    assert max(r.payload(MadeInfo).unconsumed for r in made.values()) <= 2 * cap + 1

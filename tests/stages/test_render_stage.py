@@ -4,6 +4,7 @@ the episode untouched, deterministic bytes."""
 from __future__ import annotations
 
 import hashlib
+import zipfile
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from anchordp3.sim.episode import build
 from anchordp3.sim.frames import FrameRequest, render_frames
 from anchordp3.sim.masks import critical_entities, segmentation_masks
 from anchordp3.stages.anchors import load_plan
-from anchordp3.stages.render import load_frames
+from anchordp3.stages.render import AUDIT_ARRAYS, load_frames, prune_frames
 from anchordp3.stages.rollout import load_episode
 
 
@@ -93,3 +94,21 @@ def test_rendering_an_episode_twice_gives_the_same_bytes(tmp_path, staged):
     digest = lambda p: hashlib.sha256(p.read_bytes()).hexdigest()  # noqa: E731
     assert digest(again.frames) == digest(staged["place_mouse"].frames)
     assert digest(again.features) == digest(staged["place_mouse"].features)
+
+
+def test_transient_frames_are_stored_without_deflate_and_give_the_same_features(tmp_path, staged):
+    """``keep_frames: false``: the frames file is stored (no deflate), its arrays and the features
+    made from it equal the deflated file's; pruning leaves the calibration and labels only."""
+    kept = staged["place_mouse"]
+    transient = stage_episode(tmp_path, "place_mouse", 0, render=RenderConfig(keep_frames=False))
+    with zipfile.ZipFile(kept.frames) as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_DEFLATED}
+    with zipfile.ZipFile(transient.frames) as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_STORED}
+    a, b = load_frames(kept.frames), load_frames(transient.frames)
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    assert transient.features.read_bytes() == kept.features.read_bytes()
+    prune_frames(transient.frames)
+    assert set(load_frames(transient.frames)) == set(a) - set(AUDIT_ARRAYS)
