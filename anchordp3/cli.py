@@ -3,13 +3,46 @@
 from __future__ import annotations
 
 import functools
+from inspect import signature as call_signature
+import sqlite3
 import sys
 from pathlib import Path
 
 import typer
 from pydantic import ValidationError
+from typer._click.exceptions import NoArgsIsHelpError, UsageError  # typer >= 0.29 carries its own click
+from typer.core import TyperGroup
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help="AnchorDP3 data pipeline: simulated dual-arm data, anchors, policies.")
+
+class _OneLineErrors(TyperGroup):
+    """The command line's own argument errors (an out-of-range number, a missing argument, an
+    unknown command) in the same one-line form as every other bad input: ``error: ...``, exit 2."""
+
+    def main(self, *args, standalone_mode: bool = True, **kwargs):
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except NoArgsIsHelpError as e:
+            if not standalone_mode:
+                raise
+            e.show()
+            sys.exit(e.exit_code)
+        except typer.TyperException as e:
+            if not standalone_mode:
+                raise
+            typer.echo(f"error: {e.format_message()}", err=True)
+            sys.exit(2 if isinstance(e, UsageError) else e.exit_code)
+        except typer.Abort:
+            if not standalone_mode:
+                raise
+            typer.echo("Aborted!", err=True)
+            sys.exit(1)
+        if standalone_mode:
+            sys.exit(rv if isinstance(rv, int) else 0)
+        return rv
+
+
+app = typer.Typer(cls=_OneLineErrors, add_completion=False, no_args_is_help=True,
+                  help="AnchorDP3 data pipeline: simulated dual-arm data, anchors, policies.")
 
 
 @app.callback()
@@ -26,6 +59,12 @@ def _messages(
 
 
 def _one_line(e: Exception) -> str:
+    from anchordp3.stages.files import no_space, os_error_line
+
+    if isinstance(e, sqlite3.OperationalError) and no_space(e) is not None:
+        return no_space(e)
+    if isinstance(e, OSError):
+        return os_error_line(e)
     if isinstance(e, ValidationError):
         err = e.errors()[0]
         loc = ".".join(str(x) for x in err["loc"])
@@ -33,16 +72,34 @@ def _one_line(e: Exception) -> str:
     return str(e).splitlines()[0] if str(e) else type(e).__name__
 
 
-def cli_errors(fn):
-    """Bad input becomes a one-line ``error: ...`` on stderr and exit code 2."""
+def cli_errors(fn=None, *, folders: tuple[str, ...] = (), files: tuple[str, ...] = ()):
+    """Bad input becomes a one-line ``error: ...`` on stderr and exit code 2: a bad value, a file
+    that is not what it should be, and any OS error while reading or writing (read-only, not a
+    directory, no space, permission), naming the path given or the file that failed.
+
+    folders, files: the command's parameters that name where it writes (a folder, a file); each
+    given one is checked before any work starts (``files.check_destination``)."""
+    if fn is None:
+        return functools.partial(cli_errors, folders=folders, files=files)
+    signature = call_signature(fn)
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        from anchordp3.stages.files import check_destination
+
         try:
+            given = signature.bind_partial(*args, **kwargs).arguments
+            for name in folders + files:
+                if given.get(name) is not None:
+                    check_destination(given[name], folder=name in folders)
             return fn(*args, **kwargs)
         except typer.Exit:
             raise
-        except (ValueError, ValidationError, FileNotFoundError, RuntimeError) as e:
+        except (ValueError, ValidationError, OSError, RuntimeError, sqlite3.OperationalError) as e:
+            from anchordp3.stages.files import no_space
+
+            if isinstance(e, sqlite3.OperationalError) and no_space(e) is None:
+                raise  # a defect, not the disk
             typer.echo(f"error: {_one_line(e)}", err=True)
             raise typer.Exit(2)
 
@@ -60,7 +117,7 @@ def tasks() -> None:
 
 
 @app.command()
-@cli_errors
+@cli_errors(folders=("out",))
 def rollout(
     task: str = typer.Argument(..., help="Task name (see `anchordp3 tasks`)."),
     seeds: str = typer.Option("0-9", help="Seeds, e.g. 0-49 or 0,3,7-9."),
@@ -85,7 +142,7 @@ def rollout(
 
 
 @app.command()
-@cli_errors
+@cli_errors(files=("out",))
 def snapshot(
     task: str = typer.Argument(..., help="Task name (see `anchordp3 tasks`)."),
     seed: int = typer.Option(0, help="Episode seed.", min=0),
@@ -113,7 +170,7 @@ KEEP_OUTPUTS_HELP = "Keep outputs that only older code made (same config) instea
 
 
 @app.command()
-@cli_errors
+@cli_errors(folders=("run_dir",))
 def run(
     config: Path = typer.Argument(..., help="Run config (YAML), e.g. configs/demo.yaml."),
     run_dir: Path = typer.Option(..., "--run-dir", help="Run directory (local, or shared by every cluster node)."),
@@ -135,7 +192,7 @@ def run(
 
 
 @app.command()
-@cli_errors
+@cli_errors(folders=("run_dir",))
 def stage(
     name: str = typer.Argument(..., help="Data stage: rollout, anchors, render, features or write."),
     run_dir: Path = typer.Option(..., "--run-dir", help="Run directory holding config.yaml (from an earlier `run`)."),
@@ -148,15 +205,18 @@ def stage(
     """Run one data stage alone; its input stage must be complete."""
     from anchordp3.pipeline.report import data_summary
     from anchordp3.pipeline.runner import CONFIG_FILE, run_pipeline
+    from anchordp3.pipeline.work import DATA_STAGES
     from anchordp3.schemas.run import load_run_config
 
+    if name not in DATA_STAGES:
+        raise ValueError(f"stage {name!r}: not a data stage; choose from {', '.join(DATA_STAGES)}")
     cfg = load_run_config(config or run_dir / CONFIG_FILE)
     run_pipeline(cfg, run_dir, _run_options(name, workers, address, force, None, keep_outputs))
     typer.echo(data_summary(run_dir))
 
 
 @app.command()
-@cli_errors
+@cli_errors(files=("out",))
 def show(
     path: Path = typer.Argument(..., help="A run directory, a rendered-frames file (render/frames/…npz) or a features file."),
     frame: int = typer.Option(0, help="Frame index within the episode's file."),
@@ -170,7 +230,7 @@ def show(
 
 
 @app.command()
-@cli_errors
+@cli_errors(folders=("run_dir",))
 def demo(
     run_dir: Path = typer.Option(Path("runs/demo"), "--run-dir", help="Run directory (re-running resumes it)."),
     seeds: str = typer.Option(None, help="Seeds per task (default: the embedded config's)."),
@@ -284,7 +344,7 @@ def _train(models: list[str], run_dir: Path, config: Path | None, preset: str, s
 
 
 def _train_command(models: list[str], doc: str):
-    @cli_errors
+    @cli_errors(folders=("run_dir",))
     def command(
         run_dir: Path = typer.Option(..., "--run-dir", help="Run directory with a complete dataset (from `anchordp3 run`)."),
         config: Path = typer.Option(None, "--config", help="Training config YAML: any subset of the training fields, over the preset."),
@@ -307,7 +367,7 @@ train_app.command("all")(_train_command(["segmenter", "classifier", "policy"], "
 
 
 @app.command("eval")
-@cli_errors
+@cli_errors(folders=("out",))
 def eval_(
     run_dir: Path = typer.Option(None, "--run-dir", help="Run directory with trained models (from `anchordp3 train all`)."),
     models: str = typer.Option(None, "--models", help="Models folder (segmenter/, classifier/, policy/) or 'pretrained' (default: the run's)."),
@@ -316,7 +376,7 @@ def eval_(
     out: Path = typer.Option(None, "--out", help="Evaluation folder (default: <run>/eval)."),
     preset: str = typer.Option(None, "--preset", help="Randomization preset of the scenes (default: the training data's)."),
     through: str = typer.Option("pose", "--through", help="Carry out anchors through their end-effector poses (IK) or their joints (the report)."),
-    episodes: int = typer.Option(10, "--episodes", min=1, help="Episodes per task (seeds disjoint from training)."),
+    episodes: int = typer.Option(None, "--episodes", min=1, help="Episodes per task: unseen seeds (default 10), or the first of the training seeds with --seeds train."),
     workers: int = typer.Option(2, "--workers", min=1, help="Ray actors running episodes in parallel."),
     max_decisions: int = typer.Option(None, "--max-decisions", min=1, help="Cap on policy calls per episode (default: only the step limit)."),
     device: str = typer.Option("auto", "--device", help="Torch device of the actors: auto (CUDA when the cluster has GPUs), cpu or cuda."),
@@ -343,7 +403,7 @@ app.add_typer(experiment_app, name="experiment")
 
 
 @experiment_app.command("anchors-vs-dense")
-@cli_errors
+@cli_errors(folders=("out",))
 def anchors_vs_dense(
     config: Path = typer.Argument(Path("configs/experiment.yaml"), help="Experiment config (YAML): run, training, eval."),
     out: Path = typer.Option(Path("runs/anchors-vs-dense"), "--out", help="Experiment folder (re-running resumes it)."),
@@ -360,7 +420,7 @@ def anchors_vs_dense(
 
 
 @experiment_app.command("recipe")
-@cli_errors
+@cli_errors(folders=("out",))
 def recipe(
     config: Path = typer.Argument(Path("configs/recipe.yaml"), help="Recipe config (YAML): run, training, eval."),
     out: Path = typer.Option(Path("runs/recipe"), "--out", help="Recipe folder (re-running resumes it)."),
@@ -383,7 +443,7 @@ app.add_typer(export_app, name="export")
 
 
 @export_app.command("pretrained")
-@cli_errors
+@cli_errors(folders=("dest",))
 def export_pretrained(
     run_dir: Path = typer.Argument(..., help="Run directory with trained models (e.g. a recipe's run/), or a shipped models folder to ship again."),
     dest: Path = typer.Option(None, "--dest", help="Destination folder (default: the package's pretrained/, what `--models pretrained` loads)."),
@@ -399,7 +459,7 @@ def export_pretrained(
 
 
 @export_app.command("lerobot")
-@cli_errors
+@cli_errors(folders=("out",))
 def export_lerobot_cmd(
     run_dir: Path = typer.Argument(..., help="Run directory with a complete dataset (from `anchordp3 run`)."),
     out: Path = typer.Argument(..., help="LeRobot dataset folder to create (must not exist)."),
@@ -413,7 +473,7 @@ def export_lerobot_cmd(
 
 
 @export_app.command("dp3")
-@cli_errors
+@cli_errors(folders=("out",))
 def export_dp3_cmd(
     run_dir: Path = typer.Argument(..., help="Run directory with a complete dataset (from `anchordp3 run`)."),
     out: Path = typer.Argument(..., help="DP3 zarr folder to create, e.g. OUT.zarr (must not exist)."),

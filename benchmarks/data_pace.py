@@ -9,10 +9,15 @@ kept episodes, the paths taking turns episode by episode so that the machine's d
 of them alike:
 
 - ``earlier``: SAPIEN's ``default`` shader pack, the frames file deflated (zlib level 6) even when
-  its images are dropped after featurising (``keep_frames: false``), as before the change;
+  its images are dropped after featurising (``keep_frames: false``), and each planned step reached
+  by replaying the recorded actions through the physics, as before the change;
 - ``shader``: only the ``minimal`` shader pack changed;
 - ``stored``: only the transient frames file stored without deflate;
-- ``today``: both (the defaults).
+- ``set``: only the planned steps set from the rollout's recorded PhysX states (no physics);
+- ``today``: all three (the defaults).
+
+The replaying paths read copies of the rollout files without their ``physx`` array, as rollouts
+made before it was recorded.
 
 Each path's first episode pays its shader compilation: it is timed apart (``start-up``) and left
 out of the pace. Times are CPU seconds of this process, every thread (lavapipe renders on its own
@@ -42,18 +47,19 @@ from anchordp3.schemas.episode import parse_seeds  # noqa: E402
 from anchordp3.schemas.run import RunConfig  # noqa: E402
 from anchordp3.stages.anchors import run_anchors  # noqa: E402
 from anchordp3.stages.features import run_features  # noqa: E402
-from anchordp3.stages.files import plan_file  # noqa: E402
+from anchordp3.stages.files import plan_file, save_npz  # noqa: E402
 from anchordp3.stages.render import load_frames, prune_frames, run_render  # noqa: E402
-from anchordp3.stages.rollout import rollout  # noqa: E402
+from anchordp3.stages.rollout import load_episode, rollout  # noqa: E402
 from anchordp3.stages.write import write_shard  # noqa: E402
 from anchordp3.viz.table import text_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-PATHS = {  # name: (shader pack, deflate the transient frames file)
-    "earlier": ("default", True),
-    "shader": ("minimal", True),
-    "stored": ("default", False),
-    "today": ("minimal", False),
+PATHS = {  # name: (shader pack, deflate the transient frames file, replay the physics)
+    "earlier": ("default", True, True),
+    "shader": ("minimal", True, True),
+    "stored": ("default", False, True),
+    "set": ("default", True, False),
+    "today": ("minimal", False, False),
 }
 
 
@@ -90,11 +96,19 @@ def cpu() -> float:
     return time.process_time()
 
 
-def one_episode(cfg: RunConfig, deflate: bool, rec, base: Path, out: Path, pace: Pace, first: bool) -> None:
+def without_physx(rollouts: Path, rec, out: Path) -> None:
+    """A copy of an episode's rollout file without its recorded PhysX states (replayed)."""
+    arrays = load_episode(rollouts, rec)
+    del arrays["physx"]
+    save_npz(out / rec.arrays, arrays)
+
+
+def one_episode(cfg: RunConfig, deflate: bool, replay: bool, rec, base: Path, out: Path, pace: Pace, first: bool) -> None:
     """Render and featurise one kept episode along one path, adding its CPU time to ``pace``."""
     render_cfg = cfg.render.model_copy(update={"keep_frames": deflate or cfg.render.keep_frames})
+    rollouts = base / ("rollout-replayed" if replay else "rollout")
     t0 = cpu()
-    rel = run_render(rec, base / "rollout", base / "anchors" / plan_file(rec.task, rec.seed), out / "render",
+    rel = run_render(rec, rollouts, base / "anchors" / plan_file(rec.task, rec.seed), out / "render",
                      cfg.world(), render_cfg, cfg.anchors)
     t1 = cpu()
     run_features(rec.task, rec.seed, out / "render" / rel, out / "features", cfg.features)
@@ -140,6 +154,7 @@ def main() -> int:
                 rec = rollout(task, seed, cfg.world(), cfg.preset, base / "rollout")
                 if rec.success:
                     run_anchors(rec, base / "rollout", base / "anchors", cfg.anchors)
+                    without_physx(base / "rollout", rec, base / "rollout-replayed")
                     kept.append(rec)
         if len(kept) < 2:
             raise SystemExit("fewer than two kept episodes: give more seeds")
@@ -147,8 +162,8 @@ def main() -> int:
         paces = {p: Pace() for p in paths}
         for i, rec in enumerate(kept):
             for p in paths:
-                shader, deflate = PATHS[p]
-                one_episode(with_path(cfg, shader), deflate, rec, base, base / p, paces[p], first=i == 0)
+                shader, deflate, replay = PATHS[p]
+                one_episode(with_path(cfg, shader), deflate, replay, rec, base, base / p, paces[p], first=i == 0)
             print(f"  episode {i + 1}/{len(kept)} {rec.task}/{rec.seed:06d}", file=sys.stderr)
         for p in paths:
             write_all(cfg, base / p, paces[p])
@@ -156,9 +171,9 @@ def main() -> int:
     for p in paths:
         r = paces[p]
         ms = lambda s: f"{1000 * s / max(r.frames, 1):.1f}"  # noqa: E731
-        rows.append([p, *PATHS[p][:1], "yes" if PATHS[p][1] else "no", r.episodes, r.frames, ms(r.render), ms(r.features), ms(r.write),
+        rows.append([p, PATHS[p][0], "yes" if PATHS[p][1] or cfg.render.keep_frames else "no", "replay" if PATHS[p][2] else "set", r.episodes, r.frames, ms(r.render), ms(r.features), ms(r.write),
                      f"{r.per_episode:.2f}", f"{3600 / r.per_episode:.0f}", f"{r.startup:.1f}"])
-    print(text_table(["path", "shader", "deflate", "episodes", "frames", "render ms/frame", "features ms/frame", "write ms/frame",
+    print(text_table(["path", "shader", "deflate", "steps", "episodes", "frames", "render ms/frame", "features ms/frame", "write ms/frame",
                       "CPU s/episode", "episodes/CPU-h", "start-up s"], rows))
     old, new = paces["earlier"], paces["today"]
     per_frame = lambda s, r: 1000 * s / max(r.frames, 1)  # noqa: E731

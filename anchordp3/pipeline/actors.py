@@ -95,7 +95,7 @@ class StageWorker:
                     res, seconds, cpu = self.run(item_id, item, attempt)
                     result = ItemResult(res, seconds, cpu_seconds=cpu)
                 except Exception as e:  # noqa: BLE001 - the driver retries, then records the failure
-                    full = no_space(e)
+                    full = no_space(e, Path(self.run_dir) / self.stage.folder)  # a file under it, where the error does not say which
                     result = ItemResult(None, 0.0, NO_SPACE, full) if full else ItemResult(None, 0.0, type(e).__name__, one_line(e))
             out.append(result._replace(logs=tuple(cap.records), node=node))
         return out

@@ -50,7 +50,8 @@ RUN_CONFIG_FILE = "run_config.yaml"  # beside shipped models: the data config th
 
 @dataclass(frozen=True)
 class EvalOptions:
-    """episodes: per task; workers: Ray actors; max_decisions: cap on policy calls per episode
+    """episodes: per task (None: ``DEFAULT_EPISODES`` unseen seeds, or every training seed with
+    ``seeds="train"``); workers: Ray actors; max_decisions: cap on policy calls per episode
     (None: only the step limit); device: torch device of the actors (auto: CUDA when the Ray
     cluster has GPUs, each actor holding an equal share); first_seed: the first evaluation seed
     (None: ``max(training seeds) + 1000``; it must lie above every training seed); strips: episodes
@@ -67,7 +68,7 @@ class EvalOptions:
     scale of the noise each decision's sampling starts from (None: the policy's own; 1 a random
     draw, as DP3 and the report; 0 the prior's mean)."""
 
-    episodes: int = 10
+    episodes: int | None = None
     workers: int = 2
     max_decisions: int | None = None
     device: str = "auto"
@@ -120,14 +121,21 @@ def eval_run_config(run_dir: Path | None, models_dir: Path, opts: EvalOptions) -
     return RunConfig.model_validate({**cfg.model_dump(mode="json"), **update}) if update else cfg
 
 
+DEFAULT_EPISODES = 10  # unseen seeds per task when neither --seeds nor --episodes is given
+
+
 def selected_seeds(cfg: RunConfig, opts: EvalOptions) -> list[int]:
-    """The evaluation seeds: ``opts.seeds`` (``train``: the training seeds), else ``opts.episodes``
-    seeds disjoint from training."""
+    """The evaluation seeds: ``opts.seeds`` (``train``: the training seeds, the first
+    ``opts.episodes`` of them when given), else ``opts.episodes`` seeds disjoint from training.
+    An explicit seed list and a different episode count contradict each other: refused."""
     if opts.seeds == "train":
-        return list(cfg.seed_list)
+        return list(cfg.seed_list)[:opts.episodes] if opts.episodes is not None else list(cfg.seed_list)
     if opts.seeds:
-        return parse_seeds(opts.seeds, "--seeds")
-    return eval_seeds(cfg, opts.episodes, opts.first_seed)
+        seeds = parse_seeds(opts.seeds, "--seeds")
+        if opts.episodes is not None and opts.episodes != len(seeds):
+            raise ValueError(f"--episodes: {opts.episodes} per task, but --seeds {opts.seeds!r} lists {len(seeds)}; give one or the other")
+        return seeds
+    return eval_seeds(cfg, opts.episodes if opts.episodes is not None else DEFAULT_EPISODES, opts.first_seed)
 
 
 def eval_seeds(cfg: RunConfig, episodes: int, first_seed: int | None = None) -> list[int]:
@@ -241,17 +249,17 @@ def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg:
     else:
         raise ValueError("--out: give an evaluation folder when there is no --run-dir")
     fp = _fingerprint(models_dir, cfg, opts)
+    seeds = selected_seeds(cfg, opts)  # before the folder exists: bad seeds create nothing
     with to_file(out / LOG_FILE):
-        return _evaluate(models_dir, out, fp, cfg, opts)
+        return _evaluate(models_dir, out, fp, cfg, opts, seeds)
 
 
-def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts: EvalOptions) -> list[dict]:
+def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts: EvalOptions, seeds: list[int]) -> list[dict]:
     try:
         store = ManifestStore(out, STAGE, fp)
     except StaleStageError:
         log.info("evaluate: the models or settings changed since the last evaluation; starting over")
         store = ManifestStore(out, STAGE, fp, reset=True)
-    seeds = selected_seeds(cfg, opts)
     todo = [(t, s) for t in cfg.tasks for s in seeds]
     pending = [ep for ep in todo if not store.done(episode_item(*ep))]
     log.info(f"evaluate: {len(todo)} episodes ({len(todo) - len(pending)} already done), {opts.workers} workers")

@@ -95,16 +95,22 @@ def run_status(run_dir: Path) -> list[StageStatus]:
         stored = translate_layout(cfg, DATA_GRAPH, stored)
     want = None if cfg is None else fingerprints(cfg)
     out = []
+    gone = None  # the first stage without records: every stage after it that has some lost its input
     for s, m in summaries.items():
         if m is None:
             out.append(StageStatus(stage=s, folder=STAGE_DIRS[s], ran=False))
+            gone = gone or s
             continue
         digest = stored[s].digest()
         c = m.counts
+        changed = [] if want is None else stored[s].changes(want[s])
+        if gone is not None:
+            changed.append(f"upstream {gone} has no records (its manifest is gone)")
         out.append(StageStatus(stage=s, folder=STAGE_DIRS[s], ran=True, done=c.done, failed=c.failed, planned=c.planned,
                                complete=m.complete, seconds=c.seconds, fingerprint=digest,
-                               stale=None if want is None else digest != want[s].digest(),
-                               changed=[] if want is None else stored[s].changes(want[s])))
+                               stale=None if want is None and gone is None else
+                               gone is not None or digest != want[s].digest(),
+                               changed=changed))
     return out
 
 
@@ -115,7 +121,7 @@ def status_table(statuses: list[StageStatus]) -> str:
         if not st.ran:
             rows.append([st.stage, "-", "-", "-", "not run", "-", "-", "-"])
             continue
-        stale = "?" if st.stale is None else (f"STALE({','.join(c.split()[0] for c in st.changed)})" if st.stale else "current")
+        stale = "?" if st.stale is None else (f"STALE({','.join(dict.fromkeys(c.split()[0] for c in st.changed))})" if st.stale else "current")
         rows.append([st.stage, st.done, st.failed, st.planned, "complete" if st.complete else "incomplete",
                      f"{st.seconds:.1f}", st.fingerprint, stale])
     return text_table(["stage", "done", "failed", "planned", "state", "compute s", "fingerprint", "vs config and code"], rows)

@@ -35,6 +35,7 @@ from anchordp3.pipeline.actors import FAULTS_ENV, NO_SPACE, ItemResult, StageWor
 from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.graph import EpisodeItem, Graph, GroupItem, Stage, StageOutput
 from anchordp3.pipeline.lock import RunLock
+from anchordp3.pipeline.reaper import watch_local_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_summary
 from anchordp3.pipeline.work import DATA_GRAPH
 from anchordp3.schemas.episode import episode_id
@@ -679,8 +680,9 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph =
     # user needs to act on, so that one message is dropped. It listens on loopback only.
     logging.getLogger("ray._private.authentication.authentication_token_setup").addFilter(_TokenAuthNotice())
     keep_ray_on_loopback()
-    ray.init(address="local", num_cpus=max(os.cpu_count() or 1, math.ceil(need)), include_dashboard=False, logging_level="WARNING",
-             log_to_driver=False, object_store_memory=100 * 1024**2, _node_ip_address="127.0.0.1")
+    ctx = ray.init(address="local", num_cpus=max(os.cpu_count() or 1, math.ceil(need)), include_dashboard=False, logging_level="WARNING",
+                   log_to_driver=False, object_store_memory=100 * 1024**2, _node_ip_address="127.0.0.1")
+    watch_local_ray(ctx.address_info["session_dir"])  # its helpers go when this process dies, however it dies
 
 
 def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(), graph: Graph = DATA_GRAPH) -> dict:
@@ -694,4 +696,16 @@ def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(),
     from anchordp3.pipeline.inspect import check_task_names
 
     check_task_names(cfg)
+    if opts.address or os.environ.get("RAY_ADDRESS"):
+        join_cluster(opts.address, cfg, graph)  # before the run directory exists: a bad address creates nothing
     return Runner(cfg, run_dir, opts, graph).run()
+
+
+def join_cluster(address: str | None, cfg: RunConfig | None = None, graph: Graph = DATA_GRAPH) -> None:
+    """``ensure_ray`` for a cluster address given by the user (``--address`` or ``RAY_ADDRESS``):
+    an address Ray cannot parse or reach is a one-line error naming it."""
+    try:
+        ensure_ray(address, cfg, graph)
+    except (ValueError, ConnectionError, TimeoutError) as e:
+        given = address or os.environ.get("RAY_ADDRESS")
+        raise ValueError(f"--address: cannot join the Ray cluster at {given!r} ({one_line(e)})") from None

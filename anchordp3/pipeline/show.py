@@ -23,7 +23,9 @@ def find_frames_file(path: Path, episode: str | None = None) -> Path:
         raise FileNotFoundError(f"{path}: no such file or run directory")
     root = path / "render" / "frames"
     if episode:
-        task, seed = episode.split("/")
+        task, _, seed = episode.partition("/")
+        if not task or not seed.isdigit():
+            raise ValueError(f"--episode: expected TASK/SEED, e.g. place_mouse/3, got {episode!r}")
         f = root / task / f"{int(seed):06d}.npz"
         if not f.is_file():
             raise FileNotFoundError(f"{f}: episode {episode} has no rendered frames in this run")

@@ -102,10 +102,11 @@ def _check_item(run_dir: Path, stage: str, rec: ItemRecord) -> tuple[int, list[P
 def verify_run(run_dir: Path) -> RunVerifyReport:
     """Re-hash the output of every done item of every data stage of ``run_dir``."""
     run_dir = check_run_dir(run_dir)
+    manifests = {s: read_manifest(d) if (d := stage_dir(run_dir, s)).is_dir() else None for s in DATA_STAGES}
+    if all(m is None for m in manifests.values()):
+        raise ValueError(f"{run_dir}: no stage has run here (no stage manifest): nothing to verify")
     checked, problems = 0, []
-    for s in DATA_STAGES:
-        d = stage_dir(run_dir, s)
-        m = read_manifest(d) if d.is_dir() else None
+    for s, m in manifests.items():
         if m is None:
             continue
         for rec in m.items.values():

@@ -14,6 +14,8 @@ M = TypeVar("M", bound=BaseModel)
 def read_yaml_mapping(path: Path, what: str = "config") -> dict:
     """The top-level mapping of the YAML file ``path`` (``what`` names it in errors)."""
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path}: a directory, not a {what} file")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such {what} file")
     try:

@@ -18,7 +18,9 @@ from anchordp3.sim.world import World
 
 @dataclass
 class EpisodeResult:
-    """One expert rollout. states ``(T + 1, 32)``, actions ``(T, 14)`` (see ``expert.Trajectory``);
+    """One expert rollout. states ``(T + 1, 32)``, actions ``(T, 14)``, physx ``(T + 1, P) uint8``
+    (the packed PhysX state at each state's instant; ``(0, 0)`` without a trajectory; see
+    ``expert.Trajectory``);
     ``reason`` is None on success, else ``layout_failure``, ``unstable``, ``ik_failure``,
     ``grasp_lost``, ``step_limit`` or ``success_check_failed``."""
 
@@ -30,6 +32,7 @@ class EpisodeResult:
     instruction: str
     states: np.ndarray
     actions: np.ndarray
+    physx: np.ndarray
     anchors: list[AnchorTag] = field(default_factory=list)
     seconds: float = 0.0
 
@@ -74,9 +77,18 @@ def run_expert(task_name: str, seed: int, cfg: WorldConfig) -> EpisodeResult:
         instruction=task.description if reason == "layout_failure" else task.instruction(),
         states=np.asarray(traj.states) if traj else np.zeros((0, dim)),
         actions=np.asarray(traj.actions) if traj else np.zeros((0, jdim)),
+        physx=packed_states(traj.physx) if traj else np.zeros((0, 0), np.uint8),
         anchors=list(traj.anchors) if traj else [],
         seconds=time.perf_counter() - t0,
     )
+
+
+def packed_states(packs: list[bytes]) -> np.ndarray:
+    """``(T + 1, P) uint8``: one packed PhysX state (``World.pack``) a row. A scene's pack has one
+    length for its whole episode (its bodies and joints do not change)."""
+    if len({len(p) for p in packs}) > 1:
+        raise ValueError(f"packed states of different lengths: {sorted({len(p) for p in packs})}")
+    return np.frombuffer(b"".join(packs), np.uint8).reshape(len(packs), -1).copy()
 
 
 def replay(task_name: str, seed: int, cfg: WorldConfig, actions: np.ndarray, render: bool = False,

@@ -40,9 +40,11 @@ class ExpertFailure(Exception):
 @dataclass
 class Trajectory:
     """What the expert did. states: ``(T + 1, 32)`` measured before each action and after the last;
-    actions: ``(T, 14)`` commanded joint-space targets (both arms' qpos and grippers)."""
+    actions: ``(T, 14)`` commanded joint-space targets (both arms' qpos and grippers); physx:
+    ``T + 1`` packed PhysX states (``World.pack``) at the same instants as ``states``."""
 
     states: list[np.ndarray] = field(default_factory=list)
+    physx: list[bytes] = field(default_factory=list)
     actions: list[np.ndarray] = field(default_factory=list)
     anchors: list[AnchorTag] = field(default_factory=list)
 
@@ -83,7 +85,7 @@ class Expert:
         self.linear_speed, self.gripper_seconds, self.hold_steps = linear_speed, gripper_seconds, hold_steps
         self.dt = world.cfg.sim.control_dt
         self.target = self.robot.joint_target()
-        self.traj = Trajectory(states=[self.robot.state()])
+        self.traj = Trajectory(states=[self.robot.state()], physx=[world.pack()])
 
     # ----------------------------------------------------------------------------- primitives
     def _step(self, action: np.ndarray) -> None:
@@ -93,6 +95,7 @@ class Expert:
         self.target = action.copy()
         self.traj.actions.append(action.copy())
         self.traj.states.append(self.robot.state())
+        self.traj.physx.append(self.world.pack())
 
     def _tag(self, name: str, arm: str) -> None:
         self.traj.anchors.append(AnchorTag(name=name, arm=arm, t=len(self.traj.actions)))

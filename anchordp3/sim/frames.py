@@ -1,8 +1,17 @@
-"""Sparse rendering: replay an episode's recorded actions and render only the planned frames.
+"""Sparse rendering: bring an episode's world to each planned step and render only those frames.
 
-Expert frames observe the replayed state at step t. A DAgger frame at step t copies the exact
+Two ways to reach step t, the same scene either way:
+
+- **set** (the rollout recorded the PhysX state of every step, ``physx (T + 1, P) uint8``): the
+  render world takes that state directly, with no physics stepped at all. Poses and joint states
+  are the recorded ones; the robot's link poses are recomputed from its joint positions, which
+  may differ from the stepped world's in the last float32 bit (measured: 2.4e-7 in the state).
+- **replay** (older rollouts without it): the recorded actions are stepped through the physics
+  from the settled scene, as the rollout did.
+
+Expert frames observe the episode's world at step t. A DAgger frame at step t copies the exact
 simulator state and drive targets into a second world of the same seed (the "shadow"), drives one
-arm there to a wrong pose and renders it. The replayed world itself is never perturbed, so the
+arm there to a wrong pose and renders it. The episode's world itself is never perturbed, so the
 rest of the episode (its outcome and later frames) is unchanged bit for bit; PhysX's own
 pack/unpack restores poses and velocities but not its solver caches, which after a perturbation
 changes later steps by ~1e-4.
@@ -39,12 +48,14 @@ class FrameRequest:
 @dataclass
 class RenderedFrame:
     """What one frame saw: per-view captures, critical masks ``(V, H, W) uint8``, the robot's
-    measured ``state (32,)``, and whether a DAgger perturbation was actually applied."""
+    measured ``state (32,)``, whether a DAgger perturbation was actually applied, and the
+    episode's own ``episode_state (32,)`` at that step (the state before any perturbation)."""
 
     views: list[ViewCapture]
     masks: np.ndarray
     state: np.ndarray
     perturbed: bool
+    episode_state: np.ndarray
 
 
 def observe(world: World, entities: list, cfg: RenderConfig) -> tuple[list[ViewCapture], np.ndarray]:
@@ -57,42 +68,59 @@ def observe(world: World, entities: list, cfg: RenderConfig) -> tuple[list[ViewC
 
 def render_frames(task: str, seed: int, world_cfg: WorldConfig, actions: np.ndarray, requests: list[FrameRequest],
                   cfg: RenderConfig = RenderConfig(), dagger: DaggerConfig = DaggerConfig(),
-                  on_frame=None) -> tuple[list[RenderedFrame], np.ndarray]:
-    """Replay ``actions (T, 14)`` on ``(task, seed)`` and render ``requests`` (sorted by t).
+                  on_frame=None, physx: np.ndarray | None = None) -> list[RenderedFrame]:
+    """Render ``requests`` (sorted by t) of the episode ``(task, seed)`` whose ``actions (T, 14)``
+    were recorded, at each request's step: set from ``physx (T + 1, P) uint8`` (the recorded PhysX
+    state of every step) when given, else by replaying the actions (module docstring).
 
-    on_frame(i): called after request i was rendered (progress). Returns the frames in request
-    order and the replayed measured states ``(T + 1, 32)``."""
+    on_frame(i): called after request i was rendered (progress). Returns the frames in request order."""
     ts = [r.t for r in requests]
     if ts != sorted(ts) or (ts and (ts[0] < 0 or ts[-1] > len(actions))):
         raise ValueError(f"frame steps must be sorted and within 0..{len(actions)}")
+    if physx is not None and len(physx) != len(actions) + 1:
+        raise ValueError(f"physx: expected {len(actions) + 1} recorded states, got {len(physx)}")
     world, task_obj = build(task, seed, world_cfg, render=True)
-    world.settle_and_check()
+    if physx is None:
+        world.settle_and_check()  # a set state needs no settling: it replaces every body's
     entities = critical_entities(world, task_obj.critical_objects(), cfg.include_robot)
+    start_targets = world.robot.drive_targets()
     shadow = None
     if any(r.kind == "dagger" for r in requests):
         shadow, shadow_task = build(task, seed, world_cfg, render=True)
         shadow_entities = critical_entities(shadow, shadow_task.critical_objects(), cfg.include_robot)
+
+    replayed = 0  # control steps the episode's world has executed (replay)
+
+    def at_step(t: int) -> None:
+        """Bring the episode's world, and its drive targets, to step ``t`` (never earlier than the last)."""
+        nonlocal replayed
+        if physx is None:
+            for action in actions[replayed:t]:
+                world.control_step(action)
+            replayed = max(replayed, t)
+            return
+        world.unpack(physx[t].tobytes())
+        if t == 0:
+            world.robot.restore_drive_targets(start_targets)
+        else:
+            world.robot.command(actions[t - 1])  # the targets the recorded step left
+
     frames: list[RenderedFrame] = []
-    states = [world.robot.state()]
-    k = 0
-    for t in range(len(actions) + 1):
-        while k < len(requests) and requests[k].t == t:
-            req = requests[k]
-            if req.kind != "dagger":
-                caps, masks = observe(world, entities, cfg)
-                frames.append(RenderedFrame(caps, masks, world.robot.state(), False))
-            else:
-                frames.append(_render_dagger(world, shadow, shadow_entities, req, cfg, dagger))
-            if on_frame:
-                on_frame(k)
-            k += 1
-        if t < len(actions):
-            world.control_step(actions[t])
-            states.append(world.robot.state())
-    return frames, np.asarray(states)
+    for k, req in enumerate(requests):
+        at_step(req.t)
+        episode_state = world.robot.state()
+        if req.kind != "dagger":
+            caps, masks = observe(world, entities, cfg)
+            frames.append(RenderedFrame(caps, masks, episode_state, False, episode_state))
+        else:
+            frames.append(_render_dagger(world, shadow, shadow_entities, req, cfg, dagger, episode_state))
+        if on_frame:
+            on_frame(k)
+    return frames
 
 
-def _render_dagger(world: World, shadow: World, entities: list, req: FrameRequest, cfg: RenderConfig, dagger: DaggerConfig) -> RenderedFrame:
+def _render_dagger(world: World, shadow: World, entities: list, req: FrameRequest, cfg: RenderConfig, dagger: DaggerConfig,
+                   episode_state: np.ndarray) -> RenderedFrame:
     """Copy ``world``'s exact state into ``shadow``, perturb it there, and observe."""
     if req.target_state is None:
         raise ValueError(f"DAgger frame at step {req.t} needs the next anchor's state")
@@ -100,4 +128,4 @@ def _render_dagger(world: World, shadow: World, entities: list, req: FrameReques
     shadow.robot.restore_drive_targets(world.robot.drive_targets())
     moved = perturb(shadow, req.arm, req.target_state, req.mode, req.seed, dagger)
     caps, masks = observe(shadow, entities, cfg)
-    return RenderedFrame(caps, masks, shadow.robot.state(), moved)
+    return RenderedFrame(caps, masks, shadow.robot.state(), moved, episode_state)

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import logging
 import os
 import shutil
 import sqlite3
+import tempfile
 import zipfile
 from pathlib import Path
 
@@ -50,17 +52,62 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except OSError as e:
-        tmp.unlink(missing_ok=True)  # a full disk must not keep the half-written bytes
-        if e.errno in _NO_SPACE:
-            e.filename = str(path)  # the file that was being written, not its temporary name
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)  # a full disk must not keep the half-written bytes
+        e.filename = str(path)  # the file that was being written, not its temporary name
         raise
+
+
+def user_path(filename: str | os.PathLike) -> str:
+    """The path a user asked for, behind a write in progress: ``dir/.<name>.tmp-<pid>`` (a file, or
+    a folder of a zarr shard or an export, or anything below it) is ``dir/<name>``; other paths
+    are returned as they are."""
+    parts = list(Path(filename).parts)
+    for i, part in enumerate(parts):
+        if part.startswith(".") and TMP_MARK in part:
+            return str(Path(*parts[:i], part[1:part.index(TMP_MARK)]))
+    return str(filename)
+
+
+def check_destination(path: Path | str, folder: bool) -> None:
+    """Refuse, before any work starts, a destination that cannot be written: raise ``OSError``
+    naming ``path`` when it is a file where a folder is wanted (or the reverse), when a parent is a
+    file, or when the nearest existing folder refuses a new file (read-only, permissions).
+    Creates nothing: the probe is a temporary file, removed at once.
+
+    folder: the destination is a folder (a run directory, an output folder), else a file."""
+    path = Path(path)
+    if path.exists() and folder and not path.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "not a directory", str(path))
+    if path.is_dir() and not folder:
+        raise IsADirectoryError(errno.EISDIR, "is a directory", str(path))
+    where = path if path.is_dir() else path.parent
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    if not where.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, f"{where} is not a directory", str(path))
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".probe", suffix=f"{TMP_MARK}{os.getpid()}", dir=where)
+    except OSError as e:
+        raise type(e)(e.errno, e.strerror, str(path)) from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def os_error_line(e: OSError) -> str:
+    """One line for an OS error while reading or writing: ``<path>: <reason>`` naming the path the
+    user gave or the file that failed (never a temporary name), e.g. ``runs/x: read-only file system``."""
+    if e.strerror is None:  # raised with a message of its own
+        return str(e).splitlines()[0] if str(e) else type(e).__name__
+    reason = e.strerror[0].lower() + e.strerror[1:]
+    return f"{user_path(e.filename)}: {reason}" if e.filename is not None else reason
 
 
 def no_space(e: BaseException, where: Path | str | None = None) -> str | None:
     """``"<path>: no space left on device"`` when ``e`` is a full disk (or quota) while writing,
     else None. ``<path>``: the file being written where the error knows it, else ``where``."""
     if isinstance(e, OSError) and e.errno in _NO_SPACE:
-        return f"{e.filename or where or 'a file'}: {os.strerror(e.errno).lower()}"
+        return f"{user_path(e.filename) if e.filename else where or 'a file'}: {os.strerror(e.errno).lower()}"
     if isinstance(e, sqlite3.OperationalError) and getattr(e, "sqlite_errorcode", None) == _SQLITE_FULL:
         return f"{where or 'a manifest'}: no space left on device (SQLite: {e})"
     return None

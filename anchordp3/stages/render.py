@@ -11,8 +11,9 @@ kept, stored as they are when ``keep_frames: false`` prunes their images once fe
 - ``anchors (F, H, 32) float32`` labels; ``t (F,) int64``; ``kind (F,) uint8`` (0 expert, 1 DAgger);
 - ``perturbed (F,) bool`` whether a DAgger frame's wrong pose was reached; ``views (V,)`` names.
 
-The replayed states must equal the recorded ones (checked), so the frames show the episode that
-was kept.
+Each frame's world is set to the rollout's recorded PhysX state of its step (older rollouts:
+replayed through the physics); its robot state must equal the recorded one (checked), so the
+frames show the episode that was kept.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from anchordp3.stages.anchors import load_plan
 from anchordp3.stages.files import frames_file, save_npz
 from anchordp3.stages.rollout import load_episode
 
-REPLAY_TOLERANCE = 1e-5  # largest |replayed - recorded| state difference accepted
+REPLAY_TOLERANCE = 1e-5  # largest |rendered - recorded| state difference accepted at a frame's step
 
 
 def run_render(record: EpisodeRecord, rollout_dir: Path, plan_path: Path, out_dir: Path, world: WorldConfig,
@@ -43,10 +44,12 @@ def run_render(record: EpisodeRecord, rollout_dir: Path, plan_path: Path, out_di
         FrameRequest(t=int(t), kind=kind, arm=arm, mode=mode, seed=int(s), target_state=labels[0].astype(np.float64))
         for t, kind, arm, mode, s, labels in zip(plan.t, plan.kind, plan.dagger_arm, plan.dagger_mode, plan.dagger_seed, plan.anchors)
     ]
-    frames, states = render_frames(record.task, record.seed, world, episode["actions"], requests, cfg, anchors_cfg.dagger, on_frame)
-    err = float(np.abs(states - episode["states"]).max())
-    if err > REPLAY_TOLERANCE:
-        raise RuntimeError(f"{record.episode_id}: replay diverged from the recorded episode by {err:.2e}")
+    frames = render_frames(record.task, record.seed, world, episode["actions"], requests, cfg, anchors_cfg.dagger, on_frame,
+                           physx=episode.get("physx"))
+    for f, req in zip(frames, requests):
+        err = float(np.abs(f.episode_state - episode["states"][req.t]).max())
+        if err > REPLAY_TOLERANCE:
+            raise RuntimeError(f"{record.episode_id}: the rendered world left the recorded episode at step {req.t} by {err:.2e}")
     arrays = {
         "rgb": np.stack([np.stack([v.rgb for v in f.views]) for f in frames]),
         "depth": np.stack([np.stack([v.depth for v in f.views]) for f in frames]).astype(np.float32),

@@ -5,6 +5,9 @@ Input item: ``(task, seed)``. Output item: an ``EpisodeRecord`` and, for kept ep
 
 - ``states (T + 1, 32) float64``: measured state before each action and after the last;
 - ``actions (T, 14) float64``: commanded joint-space targets, enough to replay the episode;
+- ``physx (T + 1, P) uint8``: the packed PhysX state at the same instants as ``states`` (every
+  body's pose and velocity, every joint's): the render stage sets a planned step's state from it
+  instead of stepping the physics there (files without it are replayed);
 - ``anchor_t (A,) int64`` and ``anchor_name (A,) str``: the atomic-operation boundaries.
 """
 
@@ -34,6 +37,7 @@ def rollout(task: str, seed: int, world: WorldConfig, preset: str, out_dir: Path
         save_npz(Path(out_dir) / arrays, {
             "states": res.states,
             "actions": res.actions,
+            "physx": res.physx,
             "anchor_t": np.array([a.t for a in res.anchors], dtype=np.int64),
             "anchor_name": np.array([a.name for a in res.anchors]),
         })

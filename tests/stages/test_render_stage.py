@@ -41,25 +41,51 @@ def test_expert_frames_observe_the_recorded_states(staged):
     np.testing.assert_allclose(frames["state"][expert], states[frames["t"][expert]].astype(np.float32), atol=1e-6)
 
 
-def test_dagger_frames_show_a_perturbed_arm_and_leave_the_episode_unchanged(staged):
+def _requests(plan) -> list[FrameRequest]:
+    return [FrameRequest(int(plan.t[i]), plan.kind[i], plan.dagger_arm[i], plan.dagger_mode[i], int(plan.dagger_seed[i]),
+                         plan.anchors[i][0].astype(np.float64)) for i in range(len(plan))]
+
+
+@pytest.mark.parametrize("reach", ["set", "replay"])
+def test_dagger_frames_show_a_perturbed_arm_and_leave_the_episode_unchanged(staged, reach):
     e = staged["stack_blocks_three"]
     plan = load_plan(e.plan)
-    actions = load_episode(e.root / "rollout", e.record)["actions"]
+    episode = load_episode(e.root / "rollout", e.record)
+    physx = episode["physx"] if reach == "set" else None
     dagger = [i for i, k in enumerate(plan.kind) if k == "dagger"]
     assert dagger, "the plan has DAgger frames"
-    requests = [FrameRequest(int(plan.t[i]), plan.kind[i], plan.dagger_arm[i], plan.dagger_mode[i], int(plan.dagger_seed[i]),
-                             plan.anchors[i][0].astype(np.float64)) for i in range(len(plan))]
-    with_dagger, states_a = render_frames("stack_blocks_three", 0, SMALL_WORLD, actions, requests, dagger=ANCHORS.dagger)
+    requests = _requests(plan)
+    with_dagger = render_frames("stack_blocks_three", 0, SMALL_WORLD, episode["actions"], requests, dagger=ANCHORS.dagger, physx=physx)
     expert_only = [r for r in requests if r.kind != "dagger"]
-    without, states_b = render_frames("stack_blocks_three", 0, SMALL_WORLD, actions, expert_only)
-    np.testing.assert_array_equal(states_a, states_b)  # the outcome: every later state, bit for bit
-    kept = [f for f in with_dagger if not any(f is with_dagger[i] for i in dagger)]
-    for a, b in zip(kept, without):  # the remaining frames
+    without = render_frames("stack_blocks_three", 0, SMALL_WORLD, episode["actions"], expert_only, physx=physx)
+    kept = [f for i, f in enumerate(with_dagger) if i not in dagger]
+    for a, b in zip(kept, without):  # the remaining frames, and the episode's state at each, bit for bit
         np.testing.assert_array_equal(np.stack([v.rgb for v in a.views]), np.stack([v.rgb for v in b.views]))
+        np.testing.assert_array_equal(a.episode_state, b.episode_state)
     for i in dagger:
         f = with_dagger[i]
         assert f.perturbed
-        assert np.abs(f.state - states_a[plan.t[i]]).max() > 0.01  # the arm was somewhere else
+        assert np.abs(f.state - f.episode_state).max() > 0.01  # the arm was somewhere else
+        np.testing.assert_allclose(f.episode_state, episode["states"][plan.t[i]], atol=1e-6)
+
+
+def test_setting_the_recorded_states_renders_what_replaying_the_physics_renders(staged):
+    """The rollout's packed PhysX states put every body where the replay puts it: the same
+    segmentation and states to float32 rounding, colours and depth equal on all but a few pixels."""
+    e = staged["place_mouse"]
+    plan = load_plan(e.plan)
+    episode = load_episode(e.root / "rollout", e.record)
+    assert episode["physx"].shape[0] == len(episode["states"]) and episode["physx"].dtype == np.uint8
+    requests = [r for r in _requests(plan) if r.kind != "dagger"]
+    set_ = render_frames("place_mouse", 0, SMALL_WORLD, episode["actions"], requests, physx=episode["physx"])
+    replayed = render_frames("place_mouse", 0, SMALL_WORLD, episode["actions"], requests)
+    for a, b in zip(set_, replayed):
+        np.testing.assert_allclose(a.state, b.state, atol=1e-6)
+        rgb_a, rgb_b = np.stack([v.rgb for v in a.views]), np.stack([v.rgb for v in b.views])
+        assert (rgb_a != rgb_b).any(axis=-1).mean() < 1e-3
+        assert (a.masks != b.masks).mean() < 1e-3
+        depth_a, depth_b = np.stack([v.depth for v in a.views]), np.stack([v.depth for v in b.views])
+        assert (np.abs(depth_a - depth_b) > 1e-4).mean() < 1e-3
 
 
 def test_segmentation_and_depth_difference_masks_agree(tmp_path, staged):

@@ -26,6 +26,7 @@ def test_kept_episode_saves_states_actions_and_anchors(kept):
     arr = load_episode(out, rec)
     assert arr["states"].shape == (rec.steps + 1, 32)
     assert arr["actions"].shape == (rec.steps, 14)
+    assert arr["physx"].shape[0] == rec.steps + 1 and arr["physx"].dtype == np.uint8
     assert list(arr["anchor_t"]) == [a.t for a in rec.anchors]
     assert set(arr["anchor_name"]) <= set(KEYPOSES)
     assert np.all(np.diff(arr["anchor_t"]) > 0)
