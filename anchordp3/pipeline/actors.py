@@ -100,5 +100,6 @@ class StageWorker:
             out.append(result._replace(logs=tuple(cap.records), node=node))
         return out
 
-    def ping(self) -> bool:
-        return True
+    def ping(self) -> str:
+        """This worker's node (``node_id``): it answers once it is up."""
+        return node_id()

@@ -16,6 +16,7 @@ does an item comes back with the item's result and is re-emitted here, so the ru
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -49,6 +50,8 @@ CONFIG_FILE = "config.yaml"
 LOG_FILE = "logs/driver.log"  # the driver's messages, progress and its workers' messages, appended per invocation
 CALL_SECONDS = 0.05  # work an actor call should carry before items are batched into it
 MAX_BATCH = 256      # items per actor call at most
+NODE_CHECK_S = 2.0   # how often the driver asks which Ray nodes are alive (actors on a dead one are replaced)
+REPLACE_START_S = 60.0  # a replacement actor not answering after this long is replaced by one that reserves no CPU
 
 
 class RunAborted(RuntimeError):
@@ -227,6 +230,7 @@ class Runner:
         self.group_of = {(m.task, m.seed): k for k, members in enumerate(self.plan) for m in members}
         self.halted: dict[str, set[str]] = {st.name: set() for st in self.chain}  # done, but the episode stops here
         self.stats = _Stats(self.names)
+        self._actor_options: dict[str, dict] = {}
         self.interval = opts.progress_interval if opts.progress_interval is not None else (2.0 if sys.stderr.isatty() else 15.0)
 
     def _dir(self, stage: str) -> Path:
@@ -416,8 +420,14 @@ class Runner:
         in_flight: dict = {}  # ObjectRef → (stage, actor index, [(item id, key, attempt), …])
         load = {s: [0] * len(pools.get(s, [])) for s in self.names}  # calls in flight per actor
         triage = CrashTriage()
-        pings: dict = {}      # ObjectRef of a ping → actor (stage, index) that died
+        pings: dict = {}      # ObjectRef of a ping → actor (stage, index): a died one, or a new one telling its node
         ping_due: dict = {}   # actor → when to ping it (again)
+        node_of: dict = {}    # actor → its Ray node (``actors.node_id``), from its answers
+        replaced: dict = {}   # actor → (when it was replaced, its replacement reserves CPU), until the new one answers
+        last_node_check = time.perf_counter()
+        for s in pools:
+            for a, actor in enumerate(pools[s]):
+                pings[actor.ping.remote()] = (s, a)  # each actor tells its node: the driver sees it if the node goes
         attempts: dict[tuple[str, str], int] = {}
         last_print = 0.0
         cap = self.cfg.execution.in_flight_per_worker
@@ -461,6 +471,41 @@ class Runner:
                 in_flight[pools[s][a].run_many.remote(items)] = (s, a, batch)
                 load[s][a] += 1
 
+        def replace(actor, why: str, reserve: bool = True) -> None:
+            """Give up on ``actor`` (its node is gone, or it never came back): its calls in flight
+            go back to the queue at no cost to their items, and a new actor takes its place."""
+            s, a = actor
+            log.warning(f"stage {s}: worker {a} {why}; a new one takes its place{'' if reserve else ', reserving no CPU'}")
+            for ref, (s_, a_, batch) in list(in_flight.items()):
+                if (s_, a_) == actor:
+                    del in_flight[ref]
+                    load[s][a] -= 1
+                    for item_id, key, _ in batch:
+                        triage.finished(actor, (s, item_id), ok=False)
+                        attempts[(s, item_id)] -= 1
+                        queues[s].appendleft(key)
+            for ref in [r for r, who in pings.items() if who == actor]:
+                del pings[ref]
+            ping_due.pop(actor, None)
+            node_of.pop(actor, None)
+            with contextlib.suppress(Exception):
+                ray.kill(pools[s][a], no_restart=True)
+            pools[s][a] = self._new_actor(s, reserve)
+            triage.down.add(actor)  # takes calls once it answers its ping
+            pings[pools[s][a].ping.remote()] = actor
+            replaced[actor] = (time.perf_counter(), reserve)
+
+        def check_nodes() -> None:
+            """Replace every actor whose node is gone, and every replacement that never answered."""
+            alive = {n["NodeID"][:12] for n in ray.nodes() if n["Alive"]}
+            for actor, node in list(node_of.items()):
+                if node not in alive:
+                    replace(actor, f"was on node {node}, which is gone")
+            now = time.perf_counter()
+            for actor, (since, reserve) in list(replaced.items()):
+                if reserve and now - since > REPLACE_START_S:
+                    replace(actor, f"could not be placed for {REPLACE_START_S:.0f} s", reserve=False)
+
         def settle(s: str, item_id: str, key, attempt: int, result) -> None:
             """Record one item's outcome (an ``actors.ItemResult``) or queue its retry."""
             replay(result.logs, f"{s} {item_id}")
@@ -496,8 +541,11 @@ class Runner:
                     if now >= due:
                         del ping_due[actor]
                         pings[pools[actor[0]][actor[1]].ping.remote()] = actor
-                if not in_flight and not pings and not ping_due:
-                    break
+                if not in_flight and not any(queues[s] for s in enabled):
+                    break  # nothing left to do: actors still being pinged do not matter
+                if now - last_node_check >= NODE_CHECK_S:
+                    last_node_check = now
+                    check_nodes()
                 if not in_flight and not pings:
                     time.sleep(0.1)  # only pings waiting for their time
                     continue
@@ -506,11 +554,14 @@ class Runner:
                 if not ready:
                     ready, _ = ray.wait(refs, num_returns=1, timeout=0.5)
                 for ref in ready:
+                    if ref not in pings and ref not in in_flight:
+                        continue  # a call of an actor that was replaced meanwhile
                     if ref in pings:
                         actor = pings.pop(ref)
                         try:
-                            ray.get(ref)
+                            node_of[actor] = ray.get(ref)
                             triage.up(actor)
+                            replaced.pop(actor, None)
                         except ray.exceptions.RayActorError as e:
                             _refuse_unstartable(actor[0], e)
                             ping_due[actor] = time.perf_counter() + 0.5
@@ -532,6 +583,8 @@ class Runner:
                                 continue
                             settle(s, item_id, key, attempt, ItemResult(None, 0.0, type(e).__name__, one_line(e)))
                         continue
+                    if results and results[0].node:
+                        node_of[(s, a)] = results[0].node
                     for (item_id, key, attempt), result in zip(batch, results):
                         triage.finished((s, a), (s, item_id), ok=result.output is not None)
                         settle(s, item_id, key, attempt, result)
@@ -605,10 +658,15 @@ class Runner:
             if gpus > 0 and not gpus_available:
                 raise ValueError(f"execution.pools.{s}.gpus: {gpus} GPUs asked for, but the Ray cluster has none")
             # SPREAD: a pool's actors go to different nodes where they fit (on one node: no change)
-            options = dict(num_cpus=pc.cpus, num_gpus=gpus, max_restarts=-1, max_task_retries=0, scheduling_strategy="SPREAD")
-            pools[s] = [StageWorker.options(**options)
-                        .remote(self.graph[s], str(self.run_dir.resolve()), self.cfg.model_dump_json(), self.opts.faults) for _ in range(n)]
+            self._actor_options[s] = dict(num_cpus=pc.cpus, num_gpus=gpus, max_restarts=-1, max_task_retries=0, scheduling_strategy="SPREAD")
+            pools[s] = [self._new_actor(s) for _ in range(n)]
         return pools
+
+    def _new_actor(self, s: str, reserve: bool = True):
+        """A new actor of stage ``s``'s pool; ``reserve=False``: one that reserves no CPU (it fits
+        on any live node, where a cluster that lost a node has its free CPUs in pieces too small)."""
+        options = self._actor_options[s] if reserve else {**self._actor_options[s], "num_cpus": 0}
+        return StageWorker.options(**options).remote(self.graph[s], str(self.run_dir.resolve()), self.cfg.model_dump_json(), self.opts.faults)
 
     def _finish(self, stores: dict[str, ManifestStore]) -> None:
         """The group stage's finishing item, once every group is done."""
