@@ -45,10 +45,19 @@ app = typer.Typer(cls=_OneLineErrors, add_completion=False, no_args_is_help=True
                   help="AnchorDP3 data pipeline: simulated dual-arm data, anchors, policies.")
 
 
+def _version(value: bool) -> None:
+    if value:
+        from anchordp3 import __version__
+
+        typer.echo(f"anchordp3 {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
 def _messages(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Also show debug messages."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only warnings and errors (no progress lines)."),
+    version: bool = typer.Option(False, "--version", is_eager=True, callback=_version, help="Print the version and exit."),
 ) -> None:
     """Messages and progress on stderr (``anchordp3.logs``); results on stdout."""
     import logging

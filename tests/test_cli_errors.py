@@ -129,8 +129,12 @@ def test_misleading_messages_say_what_is_wrong(tmp_path):
 
 
 def test_a_refused_address_creates_no_run_directory(tmp_path):
-    one_line_naming(invoke(["run", DEMO, "--run-dir", "DEST", "--address", "notanaddress"], tmp_path / "run", tmp_path),
-                    "--address", "notanaddress")
+    """In a process of its own, as from a shell: an address Ray cannot join is refused before the
+    run directory exists."""
+    res = subprocess.run([sys.executable, "-m", "anchordp3.cli", "run", DEMO, "--run-dir", str(tmp_path / "run"),
+                          "--address", "notanaddress"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2, res.stderr
+    one_line_naming([line for line in res.stderr.splitlines() if line.strip()], "--address", "notanaddress")
     assert tree(tmp_path) == []
 
 
@@ -215,3 +219,10 @@ def test_a_local_ray_is_gone_soon_after_its_driver_is_killed(tmp_path):
     while holders(session) and time.monotonic() < deadline:
         time.sleep(0.5)
     assert holders(session) == []
+
+
+def test_version_prints_the_packages_version():
+    from anchordp3 import __version__
+
+    res = runner.invoke(app, ["--version"])
+    assert res.exit_code == 0 and res.output.strip() == f"anchordp3 {__version__}"

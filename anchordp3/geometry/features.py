@@ -194,9 +194,13 @@ def point_features(
     # Normals only where the samples' curvature needs them: even when n * K exceeds M the union of
     # the samples' neighbourhoods is 50-70 % of a rendered cloud (measured), so this beats every point.
     sample_nbrs = knn(points, k, idx, tree)  # (n, K)
-    needed, local = np.unique(sample_nbrs, return_inverse=True)  # index order: the views' pixel order, spatially coherent
+    # The union of the neighbourhoods in index order (the views' pixel order, spatially coherent),
+    # and each neighbour's place in it: np.unique's result, by marking instead of sorting.
+    marked = np.zeros(len(points), bool)
+    marked[sample_nbrs] = True
+    needed = np.flatnonzero(marked)
+    local = (np.cumsum(marked) - 1)[sample_nbrs]  # (n, K) indices into needed
     normals = normals_pca(points, knn(points, k, needed, tree), viewpoint)  # (U, 3)
-    local = local.reshape(sample_nbrs.shape)
     curvature = curvature_features(normals, local, eps)  # row i: neighbourhood of sample i
     feats = np.concatenate([points[idx], colors[idx], normals[local[:, 0]], curvature], axis=1)
     return idx, feats.astype(np.float32)

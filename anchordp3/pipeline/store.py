@@ -22,6 +22,7 @@ with every record inline, plus ``journal.jsonl``) are read as they are, and migr
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sqlite3
 from collections.abc import Iterable, Iterator, Mapping
@@ -31,6 +32,7 @@ from pydantic import ValidationError
 
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord, StageCounts, StageManifest
 from anchordp3.schemas.records import Payload
+from anchordp3.stages.files import TMP_MARK
 
 RECORDS = "records.sqlite"
 MANIFEST = "manifest.json"  # the earlier format (read, and migrated on the first write)
@@ -269,6 +271,8 @@ class ManifestStore:
         self.dir.mkdir(parents=True, exist_ok=True)
         if existing is not None and not (self.dir / RECORDS).is_file():
             self._migrate()
+        if not (self.dir / RECORDS).is_file():  # a new manifest appears whole, its fingerprint in it
+            _create_manifest(self.dir / RECORDS, _meta_rows(StageManifest(stage=stage, fingerprint=fingerprint), 0))
         self.db = sqlite3.connect(self.dir / RECORDS, isolation_level=None)
         self.db.execute("PRAGMA journal_mode=WAL")
         self.db.execute("PRAGMA synchronous=FULL")
@@ -419,6 +423,21 @@ class ManifestStore:
         tmp.replace(self.dir / RECORDS)
         for name in (MANIFEST, JOURNAL):
             (self.dir / name).unlink(missing_ok=True)
+
+
+def _create_manifest(path: Path, meta: dict[str, str]) -> None:
+    """A new manifest file at ``path`` with its schema and ``meta`` rows, made under a temporary
+    name and renamed into place: a reader following a run never finds it without its meta."""
+    tmp = path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
+    tmp.unlink(missing_ok=True)
+    db = sqlite3.connect(tmp, isolation_level=None)
+    try:
+        db.executescript(_SCHEMA)
+        with _transaction(db):
+            db.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", list(meta.items()))
+    finally:
+        db.close()
+    os.replace(tmp, path)
 
 
 def _meta_rows(m: StageManifest, items: int) -> dict[str, str]:
