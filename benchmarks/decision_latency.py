@@ -6,7 +6,7 @@ PyTorch's reference ones, side by side in one run.
 Builds the evaluation scene of ``(task, seed)`` with the models' own data config, renders one
 observation, computes its point features, and then times, as medians over ``--reps`` calls with
 ``torch.set_num_threads(1)``: the render, the features, the segmenter, the policy (encoders and
-every DDIM step of the U-Net), and the two together (``policy_ms``: what issue 15 bounds by 50 ms),
+every DDIM step of the U-Net), and the two together (``policy_ms``, the part a decision budget of 50 ms bounds),
 once with the models' fast CPU kernels (``models.kernels``) and once with ``reference_kernels()``
 (PyTorch's own convolution and the torch FPS loop). Checks that both give the same anchors.
 Prints a table, a profile of the top operators of one fast decision, and a last line
