@@ -289,12 +289,13 @@ def verify(
     address: str = typer.Option(None, help="With --repair: Ray cluster to join (auto or ray://HOST:PORT; default: $RAY_ADDRESS, else a local Ray)."),
 ) -> None:
     """Check every done item's output against its recorded checksum; exit 1 when any is missing or corrupt."""
-    raise typer.Exit(_verify(run_dir, repair, address))
+    raise typer.Exit(_verify(run_dir, repair, address, writes=run_dir if repair else None))
 
 
-@cli_errors
-def _verify(run_dir: Path, repair: bool, address: str | None) -> int:
-    # the exit code is raised outside ``cli_errors``: typer.Exit is a RuntimeError, which it would catch
+@cli_errors(folders=("writes",))
+def _verify(run_dir: Path, repair: bool, address: str | None, writes: Path | None) -> int:
+    # the exit code is raised outside ``cli_errors``: typer.Exit is a RuntimeError, which it would catch;
+    # ``writes``: the run directory when repairing (checked as a destination), else None (verify only reads)
     from anchordp3.pipeline.verify import repair_run, verify_run
 
     if not repair:

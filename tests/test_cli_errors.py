@@ -38,6 +38,7 @@ FOLDER_WRITERS = {
     "export pretrained": ["export", "pretrained", "RUN", "--dest", "DEST"],
     "export lerobot": ["export", "lerobot", "RUN", "DEST"],
     "export dp3": ["export", "dp3", "RUN", "DEST"],
+    "verify --repair": ["verify", "DEST", "--repair"],
 }
 FILE_WRITERS = {
     "snapshot": ["snapshot", "place_mouse", "--out", "DEST"],
