@@ -36,7 +36,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import yaml
 from threadpoolctl import threadpool_limits
 
@@ -45,10 +44,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a check
 from anchordp3.schemas.dataset import ShardMember  # noqa: E402
 from anchordp3.schemas.episode import parse_seeds  # noqa: E402
 from anchordp3.schemas.run import RunConfig  # noqa: E402
-from anchordp3.stages.anchors import run_anchors  # noqa: E402
+from anchordp3.stages.anchors import load_plan, run_anchors  # noqa: E402
 from anchordp3.stages.features import run_features  # noqa: E402
 from anchordp3.stages.files import plan_file, save_npz  # noqa: E402
-from anchordp3.stages.render import load_frames, prune_frames, run_render  # noqa: E402
+from anchordp3.stages.render import prune_frames, run_render  # noqa: E402
 from anchordp3.stages.rollout import load_episode, rollout  # noqa: E402
 from anchordp3.stages.write import write_shard  # noqa: E402
 from anchordp3.viz.table import text_table  # noqa: E402
@@ -108,8 +107,8 @@ def one_episode(cfg: RunConfig, deflate: bool, replay: bool, rec, base: Path, ou
     render_cfg = cfg.render.model_copy(update={"keep_frames": deflate or cfg.render.keep_frames})
     rollouts = base / ("rollout-replayed" if replay else "rollout")
     t0 = cpu()
-    rel = run_render(rec, rollouts, base / "anchors" / plan_file(rec.task, rec.seed), out / "render",
-                     cfg.world(), render_cfg, cfg.anchors)
+    plan = base / "anchors" / plan_file(rec.task, rec.seed)
+    rel = run_render(rec, rollouts, plan, out / "render", cfg.world(), render_cfg, cfg.anchors)
     t1 = cpu()
     run_features(rec.task, rec.seed, out / "render" / rel, out / "features", cfg.features)
     if not cfg.render.keep_frames:
@@ -120,7 +119,7 @@ def one_episode(cfg: RunConfig, deflate: bool, replay: bool, rec, base: Path, ou
         return
     pace.render += t1 - t0
     pace.features += t2 - t1
-    pace.frames += len(load_frames(out / "render" / rel)["t"])
+    pace.frames += len(load_plan(plan))
     pace.episodes += 1
     pace.members.append((rec.task, rec.seed))
 

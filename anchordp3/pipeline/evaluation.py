@@ -129,7 +129,7 @@ def selected_seeds(cfg: RunConfig, opts: EvalOptions) -> list[int]:
     ``opts.episodes`` of them when given), else ``opts.episodes`` seeds disjoint from training.
     An explicit seed list and a different episode count contradict each other: refused."""
     if opts.seeds == "train":
-        return list(cfg.seed_list)[:opts.episodes] if opts.episodes is not None else list(cfg.seed_list)
+        return list(cfg.seed_list)[:opts.episodes]  # None: all of them
     if opts.seeds:
         seeds = parse_seeds(opts.seeds, "--seeds")
         if opts.episodes is not None and opts.episodes != len(seeds):

@@ -39,12 +39,12 @@ def alive(pid: int) -> bool:
 
 def holders(folder: str) -> list[int]:
     """The processes (other than this one) with a file open under ``folder``."""
-    found = []
+    prefix, found = folder.rstrip("/") + "/", []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit() or int(entry.name) == os.getpid():
             continue
         try:
-            if any(os.readlink(fd).startswith(folder.rstrip("/") + "/") for fd in (entry / "fd").iterdir()):
+            if any(os.readlink(fd).startswith(prefix) for fd in (entry / "fd").iterdir()):
                 found.append(int(entry.name))
         except OSError:  # gone meanwhile, or not ours to read
             continue

@@ -471,6 +471,11 @@ class Runner:
                 in_flight[pools[s][a].run_many.remote(items)] = (s, a, batch)
                 load[s][a] += 1
 
+        def retry_free(s: str, item_id: str, key) -> None:
+            """Queue an item lost with its actor again, first in line, without costing it an attempt."""
+            attempts[(s, item_id)] -= 1
+            queues[s].appendleft(key)
+
         def replace(actor, why: str, reserve: bool = True) -> None:
             """Give up on ``actor`` (its node is gone, or it never came back): its calls in flight
             go back to the queue at no cost to their items, and a new actor takes its place."""
@@ -482,8 +487,7 @@ class Runner:
                     load[s][a] -= 1
                     for item_id, key, _ in batch:
                         triage.finished(actor, (s, item_id), ok=False)
-                        attempts[(s, item_id)] -= 1
-                        queues[s].appendleft(key)
+                        retry_free(s, item_id, key)
             for ref in [r for r, who in pings.items() if who == actor]:
                 del pings[ref]
             ping_due.pop(actor, None)
@@ -578,8 +582,7 @@ class Runner:
                             blame = triage.lost((s, a), (s, item_id))
                             triage.finished((s, a), (s, item_id), ok=False)
                             if not blame:  # lost with the actor, not (yet) known to be its fault
-                                attempts[(s, item_id)] -= 1
-                                queues[s].appendleft(key)
+                                retry_free(s, item_id, key)
                                 continue
                             settle(s, item_id, key, attempt, ItemResult(None, 0.0, type(e).__name__, one_line(e)))
                         continue

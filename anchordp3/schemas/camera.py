@@ -41,7 +41,7 @@ class CameraRigConfig(BaseModel):
     shader: Literal["default", "minimal"] = Field(
         default="minimal",
         description="SAPIEN shader pack: 'minimal' renders in one forward pass, 'default' in SAPIEN's deferred passes; "
-                    "the same colours and segmentation, depth within a few micrometres, 'minimal' about a quarter less CPU.")
+                    "the same colours and segmentation, depth within 0.1 mm, 'minimal' about a quarter less CPU.")
     views: list[CameraSpec] = Field(
         default_factory=lambda: [
             CameraSpec(name="head", position=(-0.032, -0.45, 1.35), forward=(0.0, 0.6, -0.8)),

@@ -11,7 +11,7 @@ Conventions of every capture (one ``ViewCapture`` per camera):
 Two SAPIEN shader packs give the same images (``CameraRigConfig.shader``): ``default`` (deferred
 shading, seven G-buffers) reads colour, camera-frame position and segmentation; ``minimal`` (one
 forward pass) reads colour, the depth buffer (linearised here) and segmentation: identical colours
-and segmentation, depth within a few micrometres, about a quarter less CPU per frame on lavapipe.
+and segmentation, depth within 0.1 mm, about a quarter less CPU per frame on lavapipe.
 """
 
 from __future__ import annotations
