@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 import functools
+
+import typing
+from inspect import Parameter, Signature
 from inspect import signature as call_signature
 import sqlite3
 import sys
 from pathlib import Path
 
 import typer
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 from typer._click.exceptions import NoArgsIsHelpError, UsageError  # typer >= 0.29 carries its own click
 from typer.core import TyperGroup
+
+from anchordp3.schemas.evaluation import EvalOptions
 
 
 class _OneLineErrors(TyperGroup):
@@ -113,6 +118,47 @@ def cli_errors(fn=None, *, folders: tuple[str, ...] = (), files: tuple[str, ...]
             raise typer.Exit(2)
 
     return wrapper
+
+
+def flags_from(model: type[BaseModel], *, skip: tuple[str, ...] = ()):
+    """Decorator: the command takes one ``--flag`` per field of ``model`` (not in ``skip``), with
+    the field's default and its description as help, and receives them validated as one ``model``
+    instance in its parameter ``options``. The config is the one source of the flags; a bad value
+    is a one-line error naming the flag."""
+
+    def decorate(fn):
+        own = [p for name, p in call_signature(fn).parameters.items() if name != "options"]
+        fields = {name: f for name, f in model.model_fields.items() if name not in skip}
+        params = [Parameter(name, Parameter.KEYWORD_ONLY, annotation=_flag_type(f.annotation),
+                                    default=typer.Option(None if f.default is None else f.default, f"--{name.replace('_', '-')}", help=f.description))
+                  for name, f in fields.items()]
+
+        @functools.wraps(fn)
+        def wrapper(**kwargs):
+            values = {name: kwargs.pop(name) for name in fields}
+            try:
+                options = model(**{k: v for k, v in values.items() if v is not None or fields[k].default is None})
+            except ValidationError as e:
+                err = e.errors()[0]
+                flag = f"--{str(err['loc'][0]).replace('_', '-')}" if err["loc"] else model.__name__
+                raise ValueError(f"{flag}: {err['msg']}") from None
+            return fn(options=options, **kwargs)
+
+        wrapper.__signature__ = Signature(own + params)
+        wrapper.__annotations__ = {p.name: p.annotation for p in own + params}
+        return wrapper
+
+    return decorate
+
+
+def _flag_type(annotation) -> type:
+    """The command-line type of a config field: its one non-None type; a tuple of names is given as
+    comma-separated text, and a choice (``Literal``) as text the config checks."""
+    args = [a for a in typing.get_args(annotation) if a is not type(None)] or [annotation]
+    kind = args[0]
+    if kind in (int, float, str, bool, Path):
+        return kind
+    return str
 
 
 @app.command()
@@ -378,35 +424,18 @@ train_app.command("all")(_train_command(["segmenter", "classifier", "policy"], "
 
 @app.command("eval")
 @cli_errors(folders=("out",))
+@flags_from(EvalOptions)
 def eval_(
     run_dir: Path = typer.Option(None, "--run-dir", help="Run directory with trained models (from `anchordp3 train all`)."),
-    models: str = typer.Option(None, "--models", help="Models folder (segmenter/, classifier/, policy/) or 'pretrained' (default: the run's)."),
-    tasks: str = typer.Option(None, "--tasks", help="Comma-separated tasks (default: every task the models were trained on)."),
-    seeds: str = typer.Option(None, "--seeds", help="Seeds, e.g. 2000-2049, or 'train' for the training seeds (default: --episodes unseen seeds)."),
-    out: Path = typer.Option(None, "--out", help="Evaluation folder (default: <run>/eval)."),
-    preset: str = typer.Option(None, "--preset", help="Randomization preset of the scenes (default: the training data's)."),
-    through: str = typer.Option("pose", "--through", help="Carry out anchors through their end-effector poses (IK) or their joints (the report)."),
-    episodes: int = typer.Option(None, "--episodes", min=1, help="Episodes per task: unseen seeds (default 10), or the first of the training seeds with --seeds train."),
-    workers: int = typer.Option(2, "--workers", min=1, help="Ray actors running episodes in parallel."),
-    max_decisions: int = typer.Option(None, "--max-decisions", min=1, help="Cap on policy calls per episode (default: only the step limit)."),
-    device: str = typer.Option("auto", "--device", help="Torch device of the actors: auto (CUDA when the cluster has GPUs), cpu or cuda."),
-    first_seed: int = typer.Option(None, "--first-seed", min=0, help="First evaluation seed (default: max training seed + 1000)."),
-    address: str = typer.Option(None, "--address", help="Ray cluster address (default: $RAY_ADDRESS, else a local Ray)."),
-    ddim_steps: int = typer.Option(None, "--ddim-steps", min=1, max=100, help="DDIM steps per decision (default: the policy's own, 10 as DP3; 5 costs half and, on the shipped policy, +0.1 cm first-anchor error)."),
-    samples: int = typer.Option(1, "--samples", min=1, max=64, help="Anchor sequences drawn per decision; their medoid is carried out (1: one sample, as the report)."),
-    noise_scale: float = typer.Option(None, "--noise-scale", min=0.0, max=1.0, help="Scale of the noise each decision's sampling starts from: 1 a random draw (DP3, the report), 0 the prior's mean, deterministic (default: the policy's own)."),
+    options: EvalOptions = None,
 ) -> None:
     """Closed-loop evaluation: success rate per task with 95 % intervals, table, chart, report in <run>/eval (or --out)."""
-    from anchordp3.pipeline.evaluation import EXECUTE_THROUGH, EvalOptions, evaluation_summary, run_evaluation
+    from anchordp3.pipeline.evaluation import evaluation_summary, run_evaluation
 
-    if through not in EXECUTE_THROUGH:
-        raise ValueError(f"--through: expected one of {list(EXECUTE_THROUGH)}, got {through!r}")
-    opts = EvalOptions(episodes=episodes, workers=workers, max_decisions=max_decisions, device=device, address=address,
-                       first_seed=first_seed, through=through, models=models, out=out, preset=preset, seeds=seeds, ddim_steps=ddim_steps,
-                       samples=samples, noise_scale=noise_scale, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()) if tasks else None)
-    records = run_evaluation(run_dir, opts)
+    records = run_evaluation(run_dir, options)
     typer.echo(evaluation_summary(records))
-    typer.echo(f"report: {(out or Path(run_dir) / 'eval') / 'report.md'}")
+    typer.echo(f"report: {(options.out or Path(run_dir) / 'eval') / 'report.md'}")
+
 
 experiment_app = typer.Typer(no_args_is_help=True, help="Experiments that compare data recipes end to end.")
 app.add_typer(experiment_app, name="experiment")

@@ -1,7 +1,7 @@
 """One closed-loop decision on the CPU, one thread: where its time goes, today's kernels against
 PyTorch's reference ones, side by side in one run.
 
-    python benchmarks/decision_latency.py [--models pretrained] [--task place_mouse] [--seed 2000] [--reps 30]
+    python benchmarks/decision_latency.py [--models pretrained] [--task place_mouse] [--seed 2000] [--reps 30] [--shader lambert]
 
 Builds the evaluation scene of ``(task, seed)`` with the models' own data config, renders one
 observation, computes its point features, and then times, as medians over ``--reps`` calls with
@@ -15,12 +15,15 @@ Prints a table, a profile of the top operators of one fast decision, and a last 
 
 from __future__ import annotations
 
-import argparse
-import contextlib
-import statistics
-import sys
 import time
-from pathlib import Path
+
+T_START = time.perf_counter()  # before the heavy imports: a worker's start-up includes them
+
+import argparse  # noqa: E402
+import contextlib  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -28,7 +31,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from anchordp3.models.kernels import reference_kernels  # noqa: E402
-from anchordp3.pipeline.evaluation import EvalOptions, eval_run_config, models_folder  # noqa: E402
+from anchordp3.pipeline.evaluation import eval_run_config, models_folder  # noqa: E402
+from anchordp3.schemas.evaluation import EvalOptions  # noqa: E402
 from anchordp3.schemas.tasks import task_id  # noqa: E402
 from anchordp3.sim.closed_loop import EvalEpisode  # noqa: E402
 from anchordp3.stages.evaluate import EvalModels, frames_dict  # noqa: E402
@@ -53,15 +57,22 @@ def main() -> int:
     ap.add_argument("--task", default="place_mouse")
     ap.add_argument("--seed", type=int, default=2000)
     ap.add_argument("--reps", type=int, default=30)
+    ap.add_argument("--shader", default=None, help="render with this shader pack (default: the models' data config's)")
     ap.add_argument("--ddim-steps", default="", help="also time these DDIM step counts, e.g. 5,3 (fast kernels)")
     ap.add_argument("--samples", default="", help="also time the medoid of these sample counts per decision, e.g. 4,8")
     args = ap.parse_args()
     torch.set_num_threads(1)
     models_dir = models_folder(None, args.models)
     cfg = eval_run_config(None, models_dir, EvalOptions(tasks=(args.task,)))
+    if args.shader:
+        cfg = cfg.model_copy(update={"cameras": cfg.cameras.model_copy(update={"shader": args.shader})})
+    t0 = time.perf_counter()
     models = EvalModels(models_dir)
+    t1 = time.perf_counter()
     ep = EvalEpisode(args.task, args.seed, cfg.world())
     obs = ep.observe()
+    t2 = time.perf_counter()
+    startup = {"imports": 1000 * (t0 - T_START), "models": 1000 * (t1 - t0), "first observation": 1000 * (t2 - t1)}
     points, _ = frame_features(frames_dict(obs), 0, cfg.features, 1)
     task = task_id(args.task)
     pts = torch.from_numpy(points)[None]
@@ -80,6 +91,8 @@ def main() -> int:
             store["segmenter + policy"] = median_ms(decide, args.reps)
             store["anchors"] = decide()
     same = float(np.abs(fast["anchors"] - ref["anchors"]).max())
+    for k, ms in startup.items():
+        rows.append([f"start-up: {k}", f"{ms:.0f}", "-", "-"])
     for k in ("render", "features"):
         rows.append([k, f"{fast[k]:.1f}", "-", "-"])
     for k in ("segmenter", "segmenter + policy"):
@@ -104,7 +117,8 @@ def main() -> int:
         decide()
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=10))
     print(f"RESULT policy_ms={fast['segmenter + policy']:.1f} reference_ms={ref['segmenter + policy']:.1f} "
-          f"speedup={ref['segmenter + policy'] / fast['segmenter + policy']:.2f} decision_ms={full:.1f}")
+          f"speedup={ref['segmenter + policy'] / fast['segmenter + policy']:.2f} decision_ms={full:.1f} "
+          f"render_ms={fast['render']:.1f} startup_ms={sum(startup.values()):.0f}")
     return 0
 
 

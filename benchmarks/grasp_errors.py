@@ -35,7 +35,8 @@ import torch  # noqa: E402
 
 from anchordp3.models.encoders import append_critical_probability  # noqa: E402
 from anchordp3.models.objects import cluster_critical_points  # noqa: E402
-from anchordp3.pipeline.evaluation import EvalOptions, eval_run_config, models_folder  # noqa: E402
+from anchordp3.pipeline.evaluation import eval_run_config, models_folder  # noqa: E402
+from anchordp3.schemas.evaluation import EvalOptions  # noqa: E402
 from anchordp3.schemas.episode import parse_seeds  # noqa: E402
 from anchordp3.sim.actors import pose_matrix  # noqa: E402
 from anchordp3.sim.poses import wrap_angle  # noqa: E402

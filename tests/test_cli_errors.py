@@ -16,7 +16,8 @@ import pytest
 from typer.testing import CliRunner
 
 from anchordp3.cli import app
-from anchordp3.pipeline.evaluation import EvalOptions, selected_seeds
+from anchordp3.pipeline.evaluation import selected_seeds
+from anchordp3.schemas.evaluation import EvalOptions
 from anchordp3.pipeline.reaper import holders
 from anchordp3.schemas.run import RunConfig
 from anchordp3.stages.files import atomic_write_bytes, check_destination, os_error_line, user_path

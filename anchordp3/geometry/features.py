@@ -199,8 +199,16 @@ def point_features(
     marked = np.zeros(len(points), bool)
     marked[sample_nbrs] = True
     needed = np.flatnonzero(marked)
-    local = (np.cumsum(marked) - 1)[sample_nbrs]  # (n, K) indices into needed
-    normals = normals_pca(points, knn(points, k, needed, tree), viewpoint)  # (U, 3)
+    place = np.cumsum(marked) - 1  # (M,) each needed point's row in needed
+    local = place[sample_nbrs]  # (n, K) indices into needed
+    # The samples are among the needed points (each is its own nearest neighbour): their
+    # neighbourhoods are known, only the others are searched (knn is a function of the cloud).
+    needed_nbrs = np.empty((len(needed), sample_nbrs.shape[1]), np.int64)
+    needed_nbrs[local[:, 0]] = sample_nbrs
+    searched = np.ones(len(needed), bool)
+    searched[local[:, 0]] = False
+    needed_nbrs[searched] = knn(points, k, needed[searched], tree)
+    normals = normals_pca(points, needed_nbrs, viewpoint)  # (U, 3)
     curvature = curvature_features(normals, local, eps)  # row i: neighbourhood of sample i
     feats = np.concatenate([points[idx], colors[idx], normals[local[:, 0]], curvature], axis=1)
     return idx, feats.astype(np.float32)

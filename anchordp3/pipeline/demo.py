@@ -17,7 +17,6 @@ from anchordp3.pipeline.evaluation import (
     EVAL_DIR,
     PRETRAINED,
     PRETRAINED_DIR,
-    EvalOptions,
     evaluation_summary,
     run_evaluation,
 )
@@ -25,6 +24,7 @@ from anchordp3.pipeline.report import data_summary
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.show import show_frame
 from anchordp3.pipeline.training import MODELS, load_training_config, train_models, training_summary
+from anchordp3.schemas.evaluation import EvalOptions
 from anchordp3.schemas.run import RunConfig, load_run_config
 from anchordp3.schemas.training import TrainingConfig
 

@@ -15,7 +15,6 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import ray
@@ -29,6 +28,7 @@ from anchordp3.pipeline.store import ManifestStore, StaleStageError
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.records import EvalEpisodeInfo
 from anchordp3.schemas.episode import parse_seeds
+from anchordp3.schemas.evaluation import DEFAULT_EPISODES, EvalOptions
 from anchordp3.schemas.run import RunConfig, config_hash, load_run_config
 from anchordp3.stages.files import atomic_write_bytes
 
@@ -40,51 +40,11 @@ LOG_FILE = "eval.log"  # the evaluation's messages, its workers' included, appen
 SEED_OFFSET = 1000
 MODEL_NAMES = ("segmenter", "classifier", "policy")
 PROTOCOL_MODULE = "anchordp3.stages.evaluate"  # the decision loop and how a prediction is carried out
-EXECUTE_THROUGH = ("pose", "joints")  # stages.evaluate.EXECUTE_THROUGH, without importing the simulator
 
 
 PRETRAINED = "pretrained"
 PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"  # the shipped models, inside the package
 RUN_CONFIG_FILE = "run_config.yaml"  # beside shipped models: the data config they were trained on
-
-
-@dataclass(frozen=True)
-class EvalOptions:
-    """episodes: per task (None: ``DEFAULT_EPISODES`` unseen seeds, or every training seed with
-    ``seeds="train"``); workers: Ray actors; max_decisions: cap on policy calls per episode
-    (None: only the step limit); device: torch device of the actors (auto: CUDA when the Ray
-    cluster has GPUs, each actor holding an equal share); first_seed: the first evaluation seed
-    (None: ``max(training seeds) + 1000``; it must lie above every training seed); strips: episodes
-    per task (the first seeds) that also get a frame strip in ``strips/<task>/<seed>.png``; through:
-    how an anchor is carried out, ``pose`` (its end-effector poses by IK) or ``joints`` (the report).
-
-    models: a models folder (``segmenter/``, ``classifier/``, ``policy/``) or ``pretrained`` (None:
-    the run's ``models/``); tasks: a subset of the tasks (None: the config's); seeds: the seeds to
-    evaluate, a spec like ``2000-2049`` or ``train`` for the training seeds (None: ``episodes``
-    unseen seeds from ``first_seed``); out: the evaluation folder (None: ``<run>/eval``); preset:
-    the randomization preset of the evaluation scenes (None: the training data's); ddim_steps: DDIM
-    steps per decision (None: the policy's own, 10 as DP3); samples: anchor sequences drawn per
-    decision, their medoid carried out (1: one sample, as DP3 and the report); noise_scale: the
-    scale of the noise each decision's sampling starts from (None: the policy's own; 1 a random
-    draw, as DP3 and the report; 0 the prior's mean)."""
-
-    episodes: int | None = None
-    workers: int = 2
-    max_decisions: int | None = None
-    device: str = "auto"
-    cpus_per_worker: float = 1.0
-    address: str | None = None
-    first_seed: int | None = None
-    strips: int = 2
-    through: str = "pose"
-    models: str | None = None
-    tasks: tuple[str, ...] | None = None
-    seeds: str | None = None
-    out: Path | None = None
-    preset: str | None = None
-    ddim_steps: int | None = None
-    samples: int = 1
-    noise_scale: float | None = None
 
 
 def models_folder(run_dir: Path | None, models: str | None) -> Path:
@@ -121,7 +81,6 @@ def eval_run_config(run_dir: Path | None, models_dir: Path, opts: EvalOptions) -
     return RunConfig.model_validate({**cfg.model_dump(mode="json"), **update}) if update else cfg
 
 
-DEFAULT_EPISODES = 10  # unseen seeds per task when neither --seeds nor --episodes is given
 
 
 def selected_seeds(cfg: RunConfig, opts: EvalOptions) -> list[int]:
@@ -294,7 +253,7 @@ def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts
                 store.record(ItemRecord(item=episode_item(*ep), status="done", output=rel, checksum=file_sha256(out / rel),
                                         seconds=rec["seconds"], info=EvalEpisodeInfo(
                                             success=rec["success"], steps=rec["steps"], decisions=rec["decisions"],
-                                            failure=rec["failure"]).model_dump(mode="json")))
+                                            failure=rec["failure"], unmet=rec.get("unmet", "")).model_dump(mode="json")))
                 finished += 1
                 log.info(f"evaluate: {ep[0]} seed {ep[1]}: {'success' if rec['success'] else rec['failure']} "
                     f"({rec['steps']} steps, {rec['decisions']} decisions) [{finished}/{len(pending)}, "
@@ -320,13 +279,17 @@ def summarize(records: Sequence[dict]) -> list[dict]:
         k = sum(bool(r["success"]) for r in rs)
         lo, hi = wilson_interval(k, len(rs))
         failures: dict[str, int] = {}
+        unmet: dict[str, int] = {}  # condition: failed episodes that ended without it
         for r in rs:
             if not r["success"]:
                 failures[r["failure"]] = failures.get(r["failure"], 0) + 1
+                for name in filter(None, r.get("unmet", "").split(",")):
+                    unmet[name] = unmet.get(name, 0) + 1
         rows.append({"task": task, "episodes": len(rs), "successes": k, "rate": k / len(rs), "ci_low": lo, "ci_high": hi,
                      "mean_steps": sum(r["steps"] for r in rs) / len(rs),
                      "mean_decisions": sum(r["decisions"] for r in rs) / len(rs),
-                     "classifier_correct": sum(r["predicted_task"] == r["task"] for r in rs), "failures": failures})
+                     "classifier_correct": sum(r["predicted_task"] == r["task"] for r in rs), "failures": failures,
+                     "unmet": unmet})
     return rows
 
 
@@ -340,12 +303,12 @@ def write_reports(out: Path, records: Sequence[dict], cfg: RunConfig, opts: Eval
     import pyarrow.parquet as pq
 
     out = Path(out)
-    cols = ["task", "seed", "instruction", "predicted_task", "success", "steps", "step_limit", "decisions", "failure", "seconds"]
-    table = pa.table({c: [r[c] for r in records] for c in cols},
+    cols = ["task", "seed", "instruction", "predicted_task", "success", "steps", "step_limit", "decisions", "failure", "seconds", "unmet"]
+    table = pa.table({c: [r.get(c, "") if c == "unmet" else r[c] for r in records] for c in cols},
                      schema=pa.schema([("task", pa.string()), ("seed", pa.int64()), ("instruction", pa.string()),
                                        ("predicted_task", pa.string()), ("success", pa.bool_()), ("steps", pa.int64()),
                                        ("step_limit", pa.int64()), ("decisions", pa.int64()), ("failure", pa.string()),
-                                       ("seconds", pa.float64())]))
+                                       ("seconds", pa.float64()), ("unmet", pa.string())]))
     tmp = out / "episodes.parquet.tmp"
     pq.write_table(table, tmp)
     tmp.replace(out / "episodes.parquet")
@@ -370,13 +333,14 @@ def write_reports(out: Path, records: Sequence[dict], cfg: RunConfig, opts: Eval
              f"{len(records)} episodes on seeds disjoint from training (training seeds {cfg.seeds}; evaluation seeds "
              f"from {min(r['seed'] for r in records) if records else '-'}), instructions from held-out phrasing families"
              + (f", at most {opts.max_decisions} decisions per episode" if opts.max_decisions else "") + ".", "",
-             "| task | episodes | success | rate | 95 % CI | mean steps | mean decisions | classifier correct | failures |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| task | episodes | success | rate | 95 % CI | mean steps | mean decisions | classifier correct | failures | conditions unmet at the end |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         fails = ", ".join(f"{k}: {v}" for k, v in sorted(r["failures"].items())) or "-"
+        unmet = ", ".join(f"{k}: {v}" for k, v in sorted(r["unmet"].items(), key=lambda kv: -kv[1])) or "-"
         lines.append(f"| {r['task']} | {r['episodes']} | {r['successes']} | {r['rate']:.1%} | "
                      f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}] | {r['mean_steps']:.0f} | {r['mean_decisions']:.1f} | "
-                     f"{r['classifier_correct']}/{r['episodes']} | {fails} |")
+                     f"{r['classifier_correct']}/{r['episodes']} | {fails} | {unmet} |")
     k = sum(bool(r["success"]) for r in records)
     lo, hi = wilson_interval(k, len(records))
     lines += ["", f"Overall: {k}/{len(records)} = {k / max(1, len(records)):.1%} (95 % CI [{lo:.2f}, {hi:.2f}]).", "",

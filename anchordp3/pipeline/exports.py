@@ -30,7 +30,7 @@ from anchordp3.dataset.files import new_folder, refuse_existing, tree_files
 from anchordp3.dataset.reader import EpisodeEntry, ShardedDataset, open_dataset, read_dataset_info
 from anchordp3.dataset.verify import verify_dataset
 from anchordp3.pipeline.progress import Progress
-from anchordp3.pipeline.runner import CONFIG_FILE
+from anchordp3.pipeline.graph import CONFIG_FILE
 from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.dataset import INFO_FILE
 from anchordp3.schemas.export import ExportFormat, ExportResult

@@ -18,9 +18,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from anchordp3.schemas.manifest import P
+import anchordp3
+from anchordp3.pipeline.codehash import code_hash
+from anchordp3.schemas.manifest import Fingerprint, P
 from anchordp3.schemas.records import Payload
-from anchordp3.schemas.run import PoolConfig, RunConfig
+from anchordp3.schemas.run import PoolConfig, RunConfig, config_hash
+
+CONFIG_FILE = "config.yaml"  # a run directory's copy of its run config
 
 
 @dataclass(frozen=True)
@@ -149,3 +153,35 @@ class Graph:
     def producer(self, model: type[Payload]) -> str:
         """The stage whose records are ``model``."""
         return next(s.name for s in self.stages if s.record is model)
+
+
+def fingerprints(cfg: RunConfig, graph: Graph) -> dict[str, Fingerprint]:
+    """Each stage's fingerprint: code version and hash, its config part, its upstream's digest."""
+    out: dict[str, Fingerprint] = {}
+    for st in graph.stages:
+        up = graph.upstream(st.name)
+        out[st.name] = Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([st.code]),
+                                   config_hash=config_hash(st.config(cfg)), upstream={up: out[up].digest()} if up else {})
+    return out
+
+
+def translate_layout(cfg: RunConfig, graph: Graph, stored: dict[str, Fingerprint]) -> dict[str, Fingerprint]:
+    """The ``stored`` fingerprints (of the stages that have outputs) as the current config layout
+    reads them: when every stored config hash is the one a former layout (``Graph.former``) gives
+    for ``cfg``, each takes the current layout's config hash and its upstream the translated
+    digest (code hashes stay: a code change is still one). Otherwise ``stored`` unchanged."""
+    for former in graph.former:
+        parts = former(cfg)
+        old = {st.name: config_hash(parts.get(st.name, st.config(cfg))) for st in graph.stages}
+        if not stored or any(fp.config_hash != old[s] for s, fp in stored.items()) or all(
+                fp.config_hash == config_hash(graph[s].config(cfg)) for s, fp in stored.items()):
+            continue
+        out: dict[str, Fingerprint] = {}
+        for st in graph.stages:
+            if st.name not in stored:
+                continue
+            fp, up = stored[st.name], graph.upstream(st.name)
+            out[st.name] = fp.model_copy(update={"config_hash": config_hash(st.config(cfg)),
+                                                 "upstream": {up: out[up].digest()} if up in out else fp.upstream})
+        return out
+    return stored

@@ -15,7 +15,7 @@ from pathlib import Path
 import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
-from anchordp3.pipeline.runner import CONFIG_FILE, fingerprints, translate_layout
+from anchordp3.pipeline.graph import CONFIG_FILE, fingerprints, translate_layout
 from anchordp3.pipeline.store import has_manifest, read_manifest, read_record, read_records, read_stopped, read_summary
 from anchordp3.pipeline.work import DATA_GRAPH, DATA_STAGES, STAGE_DIRS, stage_dir
 from anchordp3.schemas.manifest import ItemRecord, StageManifest
@@ -93,7 +93,7 @@ def run_status(run_dir: Path) -> list[StageStatus]:
     stored = {s: m.fingerprint for s, m in summaries.items() if m is not None}
     if cfg is not None:  # outputs made under an earlier config layout read as the current one
         stored = translate_layout(cfg, DATA_GRAPH, stored)
-    want = None if cfg is None else fingerprints(cfg)
+    want = None if cfg is None else fingerprints(cfg, DATA_GRAPH)
     out = []
     gone = None  # the first stage without records: every stage after it that has some lost its input
     for s, m in summaries.items():

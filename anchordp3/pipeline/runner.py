@@ -34,7 +34,7 @@ import anchordp3
 from anchordp3.logs import replay, to_file
 from anchordp3.pipeline.actors import FAULTS_ENV, NO_SPACE, ItemResult, StageWorker, one_line
 from anchordp3.pipeline.codehash import code_hash
-from anchordp3.pipeline.graph import EpisodeItem, Graph, GroupItem, Stage, StageOutput
+from anchordp3.pipeline.graph import CONFIG_FILE, EpisodeItem, Graph, GroupItem, Stage, StageOutput, fingerprints, translate_layout
 from anchordp3.pipeline.lock import RunLock
 from anchordp3.pipeline.reaper import watch_local_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_summary
@@ -46,7 +46,6 @@ from anchordp3.stages.files import atomic_write_bytes, no_space, sweep_interrupt
 
 log = logging.getLogger(__name__)
 
-CONFIG_FILE = "config.yaml"
 LOG_FILE = "logs/driver.log"  # the driver's messages, progress and its workers' messages, appended per invocation
 CALL_SECONDS = 0.05  # work an actor call should carry before items are batched into it
 MAX_BATCH = 256      # items per actor call at most
@@ -80,36 +79,6 @@ class RunOptions:
     faults: str = field(default_factory=lambda: os.environ.get(FAULTS_ENV, ""))
 
 
-def fingerprints(cfg: RunConfig, graph: Graph = DATA_GRAPH) -> dict[str, Fingerprint]:
-    """Each stage's fingerprint: code version and hash, its config part, its upstream's digest."""
-    out: dict[str, Fingerprint] = {}
-    for st in graph.stages:
-        up = graph.upstream(st.name)
-        out[st.name] = Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([st.code]),
-                                   config_hash=config_hash(st.config(cfg)), upstream={up: out[up].digest()} if up else {})
-    return out
-
-
-def translate_layout(cfg: RunConfig, graph: Graph, stored: dict[str, Fingerprint]) -> dict[str, Fingerprint]:
-    """The ``stored`` fingerprints (of the stages that have outputs) as the current config layout
-    reads them: when every stored config hash is the one a former layout (``Graph.former``) gives
-    for ``cfg``, each takes the current layout's config hash and its upstream the translated
-    digest (code hashes stay: a code change is still one). Otherwise ``stored`` unchanged."""
-    for former in graph.former:
-        parts = former(cfg)
-        old = {st.name: config_hash(parts.get(st.name, st.config(cfg))) for st in graph.stages}
-        if not stored or any(fp.config_hash != old[s] for s, fp in stored.items()) or all(
-                fp.config_hash == config_hash(graph[s].config(cfg)) for s, fp in stored.items()):
-            continue
-        out: dict[str, Fingerprint] = {}
-        for st in graph.stages:
-            if st.name not in stored:
-                continue
-            fp, up = stored[st.name], graph.upstream(st.name)
-            out[st.name] = fp.model_copy(update={"config_hash": config_hash(st.config(cfg)),
-                                                 "upstream": {up: out[up].digest()} if up in out else fp.upstream})
-        return out
-    return stored
 
 
 def read_fingerprints(run_dir: Path, graph: Graph = DATA_GRAPH) -> dict[str, Fingerprint]:

@@ -19,7 +19,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from anchordp3.dataset.files import file_sha256, tree_checksum
 from anchordp3.pipeline.inspect import check_run_dir, run_config, run_status
 from anchordp3.pipeline.lock import RunLock
-from anchordp3.pipeline.runner import CONFIG_FILE, RunOptions, run_pipeline
+from anchordp3.pipeline.graph import CONFIG_FILE
+from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import ManifestStore, read_manifest, read_summary
 from anchordp3.pipeline.work import DATA_GRAPH, DATA_STAGES, INDEX_ITEM, stage_dir
 from anchordp3.schemas.dataset import DatasetInfo

@@ -4,39 +4,23 @@ settings shared by the two arms of the comparison."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
-
 from pydantic import BaseModel, ConfigDict, Field
 
+from anchordp3.schemas.evaluation import EvalOptions, EvalSettings
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.training import TrainingConfig
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 
-if TYPE_CHECKING:
-    from anchordp3.pipeline.evaluation import EvalOptions
 
-
-class ExperimentEvalConfig(BaseModel):
+class ExperimentEvalConfig(EvalSettings):
     """Closed-loop evaluation of trained models (both arms of the comparison, on the same seeds
     and instructions; the recipe's, ``RecipeEvalConfig``, adds the training seeds)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
     episodes: int = Field(default=3, ge=1, description="Unseen evaluation seeds per task (from max training seed + 1000).")
-    workers: int = Field(default=2, ge=1, description="Ray actors running episodes in parallel.")
-    max_decisions: int | None = Field(default=None, ge=1, description="Cap on policy calls per episode (None: only the task's step limit).")
-    through: Literal["pose", "joints"] = Field(default="pose", description="Carry out an anchor through its end-effector poses (IK) or its joint angles (the report).")
-    samples: int = Field(default=1, ge=1, le=64, description="Anchor sequences drawn per decision, their medoid carried out (1: one sample, as the report).")
-    ddim_steps: int | None = Field(default=None, ge=1, le=100, description="DDIM steps per decision (None: the policy's own, its config's scheduler.num_inference_steps).")
-    noise_scale: float | None = Field(default=None, ge=0, le=1, description="Scale of the noise each decision's sampling starts from: 1 a random draw (DP3, the report), 0 the prior's mean (None: the policy's own, its config's scheduler.init_noise_scale).")
 
     def options(self, **extra) -> EvalOptions:
         """These settings as ``EvalOptions``, with ``extra`` (seeds, out, address, ...) beside them."""
-        from anchordp3.pipeline.evaluation import EvalOptions
-
-        base = dict(episodes=self.episodes, workers=self.workers, max_decisions=self.max_decisions,
-                    through=self.through, samples=self.samples, ddim_steps=self.ddim_steps, noise_scale=self.noise_scale)
-        return EvalOptions(**{**base, **extra})
+        return EvalOptions(**{**{k: getattr(self, k) for k in EvalSettings.model_fields}, **extra})
 
 
 class ExperimentConfig(BaseModel):

@@ -97,3 +97,4 @@ class EvalEpisodeInfo(Payload):
     steps: int = Field(ge=0, description="Control steps executed.")
     decisions: int = Field(ge=0, description="Policy decisions taken.")
     failure: str | None = Field(default=None, description="Failure mode (stalled, grasp_missed, ...); None on success.")
+    unmet: str = Field(default="", description="The task's success conditions unmet at the end, comma-separated (Task.evaluate); empty on success.")

@@ -55,10 +55,13 @@ class RobotSpec(BaseModel):
 
     urdf: str = Field(
         default="dual_arm.urdf",
-        description="URDF path; a bare name is looked up in the package's sim/assets folder.",
+        description="URDF path (absolute, or relative to the working directory); a bare name not found there is "
+                    "looked up in the package's sim/assets folder.",
     )
-    left: ArmSpec = Field(description="The arm on the robot's left (world -x).")
-    right: ArmSpec = Field(description="The arm on the robot's right (world +x).")
+    left: ArmSpec = Field(default_factory=lambda: shipped_arm("left"),
+                          description="The arm on the robot's left (world -x); default: the shipped robot's joint and link names.")
+    right: ArmSpec = Field(default_factory=lambda: shipped_arm("right"),
+                           description="The arm on the robot's right (world +x); default: the shipped robot's joint and link names.")
     arm_stiffness: float = Field(default=1000.0, gt=0, description="Arm joint drive stiffness.")
     arm_damping: float = Field(default=200.0, ge=0, description="Arm joint drive damping.")
     gripper_stiffness: float = Field(default=2000.0, gt=0, description="Finger joint drive stiffness.")
@@ -131,17 +134,19 @@ def _check_limit(joint: ET.Element, q: float, field: str) -> None:
         raise ValueError(f"{field}: {q} is outside joint {joint.get('name')!r} limits [{lo}, {hi}]")
 
 
+def shipped_arm(side: str) -> ArmSpec:
+    """One arm of the robot shipped with the package (``side``: left or right): six revolute
+    joints ``<side>_joint1..6``, end-effector link ``<side>_ee``, two prismatic fingers."""
+    return ArmSpec(
+        joints=[f"{side}_joint{i}" for i in range(1, 7)],
+        ee_link=f"{side}_ee",
+        gripper_joints=[f"{side}_finger_left", f"{side}_finger_right"],
+        gripper_open=0.045,
+        gripper_closed=0.0,
+        home_qpos=[0.0, 0.0, 1.7, 0.0, 1.44, 0.0],
+    )
+
+
 def default_robot() -> RobotSpec:
     """The robot shipped with the package: two 6-DoF arms with parallel-jaw grippers."""
-
-    def arm(side: str) -> ArmSpec:
-        return ArmSpec(
-            joints=[f"{side}_joint{i}" for i in range(1, 7)],
-            ee_link=f"{side}_ee",
-            gripper_joints=[f"{side}_finger_left", f"{side}_finger_right"],
-            gripper_open=0.045,
-            gripper_closed=0.0,
-            home_qpos=[0.0, 0.0, 1.7, 0.0, 1.44, 0.0],
-        )
-
-    return RobotSpec(left=arm("left"), right=arm("right"))
+    return RobotSpec()

@@ -13,6 +13,7 @@ from anchordp3.schemas.dataset import WriteConfig
 from anchordp3.schemas.episode import SeedSet, parse_seed_set
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 from anchordp3.schemas.randomization import PRESETS
+from anchordp3.schemas.robot import RobotSpec, default_robot
 from anchordp3.schemas.sections import PartialSections
 from anchordp3.schemas.sim import SimConfig, WorldConfig
 from anchordp3.schemas.randomization import preset as preset_config
@@ -65,6 +66,8 @@ class RunConfig(BaseModel):
     tasks: list[str] = Field(description="Task names (see `anchordp3 tasks`).")
     seeds: str = Field(default="0-9", description="Episode seeds per task, e.g. '0-49' or '0,3,7-9'.")
     preset: str = Field(default="randomized", description="Randomization preset: " + ", ".join(PRESETS) + ".")
+    robot: RobotSpec = Field(default_factory=default_robot,
+                             description="The robot: its URDF, each arm's joints, end-effector link and gripper, and drive gains.")
     cameras: CameraRigConfig = Field(default_factory=CameraRigConfig, description="Camera resolution, intrinsics and placement.")
     sim: SimConfig = Field(default_factory=SimConfig, description="Physics and control timing.")
     anchors: AnchorsConfig = Field(default_factory=AnchorsConfig, description="Anchor tagging and the frame plan.")
@@ -108,7 +111,16 @@ class RunConfig(BaseModel):
 
     def world(self) -> WorldConfig:
         """The simulated world of every episode."""
-        return WorldConfig(randomization=preset_config(self.preset), cameras=self.cameras, sim=self.sim)
+        return WorldConfig(robot=self.robot, randomization=preset_config(self.preset), cameras=self.cameras, sim=self.sim)
+
+    def _robot_part(self) -> dict:
+        """The robot's share of the world's fingerprint: nothing for the shipped robot (runs made
+        before the robot was configurable keep their outputs), else its settings and the URDF's
+        SHA-256 (an edited URDF at the same path is a different robot)."""
+        if self.robot.model_dump() == default_robot().model_dump():
+            return {}
+        digest = hashlib.sha256(self.robot.urdf_path.read_bytes()).hexdigest()
+        return {"robot": {**self.robot.model_dump(mode="json"), "urdf_sha256": digest}}
 
     def stage_config(self, stage: str, layout: int = 2) -> dict:
         """What a stage's outputs depend on (its own settings and what it shares with the world);
@@ -118,7 +130,7 @@ class RunConfig(BaseModel):
         the episode set is in the write stage's part only (the shard plan and the split follow
         it), so adding seeds redoes the shards and nothing else. ``layout=1``: the parts before
         that change (the episode set in the rollout's part), to recognise outputs made then."""
-        world = {"preset": self.preset, "sim": self.sim.model_dump(mode="json")}
+        world = {"preset": self.preset, "sim": self.sim.model_dump(mode="json"), **self._robot_part()}
         episodes = {"tasks": self.tasks, "seeds": str(self.seed_list)}
         if layout == 1:
             return {"rollout": {**world, **episodes}, "write": {"write": self.write.model_dump(mode="json")}}.get(stage) \

@@ -1,7 +1,7 @@
 """The task registry: every task's name, stable model id and instruction vocabulary, declared once.
 
-A task is one ``TaskSpec`` here plus its simulator class (``sim/tasks/``), which points at the
-spec (``spec = PLACE_MOUSE``) and takes its ``name`` from it. The spec lives here, apart from the
+A task is one ``TaskSpec`` here plus its simulator class (any module of ``sim/tasks/``), which
+points at the spec (``spec = PLACE_MOUSE``) and takes its name, description and step limit from it. The spec lives here, apart from the
 class, because the models and schemas need names, ids and phrases without importing the
 simulator (no sapien outside ``sim/``). Everything else derives from the registry: ``TASK_NAMES``
 (in id order), ``task_id``, the classifier's logits, the policy's per-task encoders, the
@@ -51,10 +51,13 @@ _BLOCK_NOUNS = ("red, green and blue blocks", "red, green, and blue cubes", "thr
 
 @dataclass(frozen=True)
 class TaskSpec:
-    """One task: its name, its stable model id, the words its instructions are made of."""
+    """One task: its name, its stable model id, one sentence a person would say for it, its step
+    limit (control steps at 50 Hz), the words its instructions are made of."""
 
     name: str
     task_id: int
+    description: str
+    step_limit: int
     phrases: TaskPhrases
 
 
@@ -71,6 +74,8 @@ def register(spec: TaskSpec) -> TaskSpec:
 
 PLACE_MOUSE = register(TaskSpec(
     name="place_mouse", task_id=0,
+    description="Pick up the mouse and place it on the electronic scale.",
+    step_limit=800,
     phrases=TaskPhrases(
         nouns=("mouse", "computer mouse", "wireless mouse", "PC mouse", "optical mouse", "mouse device"),
         verbs=_PLACE, picks=_PICK, goals=_SCALE_GOALS, targets=_SCALE_TARGETS, why=_SCALE_WHY,
@@ -82,6 +87,8 @@ PLACE_MOUSE = register(TaskSpec(
 
 PLACE_STAPLER = register(TaskSpec(
     name="place_stapler", task_id=1,
+    description="Pick up the stapler and place it on the electronic scale.",
+    step_limit=800,
     phrases=TaskPhrases(
         nouns=("stapler", "office stapler", "desk stapler", "paper stapler", "stapling tool", "staple gun"),
         verbs=_PLACE, picks=_PICK, goals=_SCALE_GOALS, targets=_SCALE_TARGETS, why=_SCALE_WHY,
@@ -92,6 +99,8 @@ PLACE_STAPLER = register(TaskSpec(
 
 PLACE_BELL = register(TaskSpec(
     name="place_bell", task_id=2,
+    description="Pick up the bell and place it on the electronic scale.",
+    step_limit=800,
     phrases=TaskPhrases(
         nouns=("bell", "service bell", "desk bell", "call bell", "counter bell", "reception bell", "hotel bell"),
         verbs=_PLACE, picks=_PICK, goals=_SCALE_GOALS, targets=_SCALE_TARGETS, why=_SCALE_WHY,
@@ -102,6 +111,8 @@ PLACE_BELL = register(TaskSpec(
 
 BLOCKS_RANKING_RGB = register(TaskSpec(
     name="blocks_ranking_rgb", task_id=3,
+    description="Put the red, green and blue blocks in a row, in that order from left to right.",
+    step_limit=2000,
     phrases=TaskPhrases(
         nouns=_BLOCK_NOUNS, plural=True,
         verbs=(("arrange", "arranged"), ("line up", "lined up"), ("sort", "sorted"), ("order", "ordered"),
@@ -122,6 +133,8 @@ BLOCKS_RANKING_RGB = register(TaskSpec(
 
 STACK_BLOCKS_THREE = register(TaskSpec(
     name="stack_blocks_three", task_id=4,
+    description="Stack the three blocks at the target spot: red at the bottom, then green, then blue on top.",
+    step_limit=2000,
     phrases=TaskPhrases(
         nouns=_BLOCK_NOUNS, plural=True,
         verbs=(("stack", "stacked"), ("pile", "piled"), ("pile up", "piled up"), ("put", "put"),
@@ -140,6 +153,8 @@ STACK_BLOCKS_THREE = register(TaskSpec(
 
 PLACE_DUAL_SHOES = register(TaskSpec(
     name="place_dual_shoes", task_id=5,
+    description="Use both arms to put the pair of shoes side by side on the mat, toes pointing forward.",
+    step_limit=1800,  # 3 x RoboTwin's 600 (its frames ~16.7 Hz, our control 50 Hz)
     phrases=TaskPhrases(
         nouns=("shoes", "pair of shoes", "two shoes", "sneakers", "pair of sneakers", "trainers",
                "left and right shoes", "footwear"),
@@ -159,6 +174,8 @@ PLACE_DUAL_SHOES = register(TaskSpec(
 
 PUT_BOTTLES_DUSTBIN = register(TaskSpec(
     name="put_bottles_dustbin", task_id=6,
+    description="Put all the bottles into the dustbin.",
+    step_limit=3000,  # 3 x RoboTwin's 1000 (its frames ~16.7 Hz, our control 50 Hz)
     phrases=TaskPhrases(
         nouns=("bottles", "plastic bottles", "empty bottles", "drink bottles", "water bottles", "soda bottles",
                "three bottles", "used bottles"),
@@ -177,6 +194,8 @@ PUT_BOTTLES_DUSTBIN = register(TaskSpec(
 
 PLACE_PHONE_STAND = register(TaskSpec(
     name="place_phone_stand", task_id=7,
+    description="Pick up the phone and put it on the phone stand.",
+    step_limit=1200,  # 3 x RoboTwin's 400 (its frames ~16.7 Hz, our control 50 Hz)
     phrases=TaskPhrases(
         nouns=("phone", "smartphone", "mobile phone", "cell phone", "cellphone", "mobile", "handset"),
         verbs=(("place", "placed"), ("put", "put"), ("set", "set"), ("rest", "rested"), ("lean", "leaned"),

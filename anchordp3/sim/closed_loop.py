@@ -147,8 +147,12 @@ class EvalEpisode:
             start = end
         return used
 
+    def conditions(self) -> dict[str, bool]:
+        """The task's success conditions now, by name (``Task.evaluate``)."""
+        return {name: bool(met) for name, met in self.task.evaluate().items()}
+
     def success(self) -> bool:
-        return bool(self.task.check_success())
+        return all(self.conditions().values())
 
     def _object_heights(self) -> dict[str, float]:
         objects = self.world.objects

@@ -9,12 +9,13 @@ Two ways to reach step t, the same scene either way:
 - **replay** (older rollouts without it): the recorded actions are stepped through the physics
   from the settled scene, as the rollout did.
 
-Expert frames observe the episode's world at step t. A DAgger frame at step t copies the exact
-simulator state and drive targets into a second world of the same seed (the "shadow"), drives one
-arm there to a wrong pose and renders it. The episode's world itself is never perturbed, so the
-rest of the episode (its outcome and later frames) is unchanged bit for bit; PhysX's own
-pack/unpack restores poses and velocities but not its solver caches, which after a perturbation
-changes later steps by ~1e-4.
+Expert frames observe the episode's world at step t. A DAgger frame at step t drives one arm to a
+wrong pose from the exact simulator state and drive targets of step t and renders it. When steps
+are set, the episode's world itself is perturbed: the next frame sets every body's recorded state
+again, so nothing of the perturbation reaches it. When steps are replayed, the state and targets
+are copied into a second world of the same seed (the "shadow") and perturbed there: the episode's
+world must go on stepping unchanged bit for bit, and PhysX's own pack/unpack restores poses and
+velocities but not its solver caches, which after a perturbation changes later steps by ~1e-4.
 """
 
 from __future__ import annotations
@@ -84,8 +85,8 @@ def render_frames(task: str, seed: int, world_cfg: WorldConfig, actions: np.ndar
         world.settle_and_check()  # a set state needs no settling: it replaces every body's
     entities = critical_entities(world, task_obj.critical_objects(), cfg.include_robot)
     start_targets = world.robot.drive_targets()
-    shadow = None
-    if any(r.kind == "dagger" for r in requests):
+    shadow, shadow_entities = world, entities  # set steps: a perturbation is undone by the next frame's set
+    if physx is None and any(r.kind == "dagger" for r in requests):
         shadow, shadow_task = build(task, seed, world_cfg, render=True)
         shadow_entities = critical_entities(shadow, shadow_task.critical_objects(), cfg.include_robot)
 
@@ -121,11 +122,13 @@ def render_frames(task: str, seed: int, world_cfg: WorldConfig, actions: np.ndar
 
 def _render_dagger(world: World, shadow: World, entities: list, req: FrameRequest, cfg: RenderConfig, dagger: DaggerConfig,
                    episode_state: np.ndarray) -> RenderedFrame:
-    """Copy ``world``'s exact state into ``shadow``, perturb it there, and observe."""
+    """Copy ``world``'s exact state into ``shadow`` (unless they are one world), perturb it there,
+    and observe."""
     if req.target_state is None:
         raise ValueError(f"DAgger frame at step {req.t} needs the next anchor's state")
-    shadow.unpack(world.pack())
-    shadow.robot.restore_drive_targets(world.robot.drive_targets())
+    if shadow is not world:
+        shadow.unpack(world.pack())
+        shadow.robot.restore_drive_targets(world.robot.drive_targets())
     moved = perturb(shadow, req.arm, req.target_state, req.mode, req.seed, dagger)
     caps, masks = observe(shadow, entities, cfg)
     return RenderedFrame(caps, masks, shadow.robot.state(), moved, episode_state)

@@ -12,11 +12,13 @@ the expert's own labels this way succeeds (``stages/oracle.py``): the protocol's
 Failure modes: ``None`` on success, else ``layout_failure`` / ``unstable`` (the scene could not be
 built or settled), ``no_points`` (nothing inside the workspace box), ``wrong_task`` (the
 classifier picked another task and the episode failed), and for an episode that ran out of steps
-or decisions what the trace of its decisions shows (``diagnose``): ``stalled`` (its last decisions
-no longer moved the robot), ``grasp_missed`` (a gripper closed but nothing came up),
+or decisions, ``not_released`` when the task's only unmet condition (``Task.evaluate``) is its
+release (everything is in place, a gripper still holds on), else what the trace of its decisions
+shows (``diagnose``): ``stalled`` (its last decisions no longer moved the robot), ``grasp_missed`` (a gripper closed but nothing came up),
 ``object_dropped`` (an object came up, then fell while the grippers stayed closed),
 ``placed_wrong`` (an object was carried and released, but the task is not done), else
-``step_limit`` / ``max_decisions``.
+``step_limit`` / ``max_decisions``. Every failed episode also records which of the task's named
+conditions were unmet at its end (``EvalRecord.unmet``).
 """
 
 from __future__ import annotations
@@ -44,8 +46,8 @@ from anchordp3.stages.train_classifier import load_classifier
 from anchordp3.stages.train_policy import load_policy
 from anchordp3.stages.train_segmenter import load_segmenter
 
-FAILURE_MODES = ("layout_failure", "unstable", "no_points", "wrong_task", "stalled", "grasp_missed", "object_dropped",
-                 "placed_wrong", "step_limit", "max_decisions")
+FAILURE_MODES = ("layout_failure", "unstable", "no_points", "wrong_task", "not_released", "stalled", "grasp_missed",
+                 "object_dropped", "placed_wrong", "step_limit", "max_decisions")
 LIFTED = 0.03  # an object this far above where it settled has been picked up, metres
 STALL_DECISIONS = 3  # this many decisions in a row without motion make a stall
 STALL_MOTION = 0.005  # joint motion (rad) and gripper change below which a decision did nothing
@@ -92,6 +94,7 @@ class EvalRecord:
     decisions: int
     failure: str | None
     seconds: float
+    unmet: str = ""  # the task's conditions unmet at the end, comma-separated ("" on success)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -153,7 +156,6 @@ def decision_seed(task: str, seed: int, decision: int) -> int:
     return zlib.crc32(f"eval/{task}/{seed}/{decision}".encode())
 
 
-EXECUTE_THROUGH = ("pose", "joints")  # how an anchor is carried out: its end-effector poses by IK, or its joints
 
 
 def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig, through: str = "pose") -> int:
@@ -204,15 +206,22 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
 
     trace: list[DecisionTrace] = []
 
-    def record(success: bool, steps: int, limit: int, decisions: int, failure: str | None) -> EvalRecord:
+    def record(success: bool, steps: int, limit: int, decisions: int, failure: str | None,
+               conditions: dict[str, bool] | None = None) -> EvalRecord:
+        unmet = [name for name, met in (conditions or {}).items() if not met]
         if not success and failure in ("step_limit", "max_decisions"):
-            failure = "wrong_task" if predicted != task_id(task) else diagnose(trace, failure)
+            if predicted != task_id(task):
+                failure = "wrong_task"
+            elif unmet == ["released"]:
+                failure = "not_released"
+            else:
+                failure = diagnose(trace, failure)
         if strip is not None and frames:
             frames.append((ep.observe().views[0].rgb, f"end t{ep.steps}"))
             write_strip(strip, frames, f"{task} seed {seed}: {'success' if success else failure} - {text}")
         return EvalRecord(task=task, seed=seed, instruction=text, predicted_task=pred_name, success=success,
                           steps=steps, step_limit=limit, decisions=decisions, failure=None if success else failure,
-                          seconds=time.perf_counter() - t0)
+                          seconds=time.perf_counter() - t0, unmet=",".join(unmet))
 
     try:
         ep = EvalEpisode(task, seed, cfg.world())
@@ -223,12 +232,13 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
     decisions = 0
     joints = [i for a in ARMS for i in range(ep.layout.dim)[ep.layout.qpos(a)]]
     while True:
-        if ep.success():
-            return record(True, ep.steps, ep.step_limit, decisions, None)
+        conditions = ep.conditions()
+        if all(conditions.values()):
+            return record(True, ep.steps, ep.step_limit, decisions, None, conditions)
         if ep.steps >= ep.step_limit:
-            return record(False, ep.steps, ep.step_limit, decisions, "step_limit")
+            return record(False, ep.steps, ep.step_limit, decisions, "step_limit", conditions)
         if max_decisions is not None and decisions >= max_decisions:
-            return record(False, ep.steps, ep.step_limit, decisions, "max_decisions")
+            return record(False, ep.steps, ep.step_limit, decisions, "max_decisions", conditions)
         obs = ep.observe()
         if strip is not None:
             frames.append((obs.views[0].rgb, f"d{decisions} t{ep.steps}"))
@@ -236,7 +246,7 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
         try:
             points, _ = frame_features(frames_dict(obs), 0, cfg.features, s)
         except ValueError:
-            return record(False, ep.steps, ep.step_limit, decisions, "no_points")
+            return record(False, ep.steps, ep.step_limit, decisions, "no_points", conditions)
         pred = models.anchors(points, obs.state, predicted, s)
         if watch is not None:
             watch(ep, decisions, points, pred)

@@ -12,6 +12,7 @@ import sqlite3
 import tempfile
 import zipfile
 from pathlib import Path
+from typing import BinaryIO, Callable
 
 import numpy as np
 
@@ -43,11 +44,17 @@ def features_file(task: str, seed: int) -> str:
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that a crash leaves either the old file or the new one."""
+    atomic_write(path, lambda f: f.write(data))
+
+
+def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
+    """Let ``write(f)`` fill a temporary file beside ``path``, make it durable and rename it to
+    ``path``: a crash leaves either the old file or the new one, never a part of it."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
     try:
         with open(tmp, "wb") as f:
-            f.write(data)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -137,17 +144,23 @@ def npz_bytes(arrays: dict[str, np.ndarray], compress: bool = True) -> bytes:
 
     compress: deflate every array (zlib level 6, ``np.savez_compressed``'s); False stores them as
     they are (``np.savez``'s), for files read once and dropped: no deflate to pay, nor inflate."""
-    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", method) as zf:
-        for name in sorted(arrays):
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
-            info.compress_type = method
-            with zf.open(info, "w") as f:
-                np.lib.format.write_array(f, np.ascontiguousarray(arrays[name]), allow_pickle=False)
+    _write_npz(buf, arrays, compress)
     return buf.getvalue()
 
 
+def _write_npz(f: BinaryIO, arrays: dict[str, np.ndarray], compress: bool) -> None:
+    """Write the archive ``npz_bytes`` describes into ``f`` (seekable), array by array."""
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(f, "w", method) as zf:
+        for name in sorted(arrays):
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
+            info.compress_type = method
+            with zf.open(info, "w") as member:
+                np.lib.format.write_array(member, np.ascontiguousarray(arrays[name]), allow_pickle=False)
+
+
 def save_npz(path: Path, arrays: dict[str, np.ndarray], compress: bool = True) -> None:
-    """Atomically write ``arrays`` as a deterministic ``.npz`` file (``compress``: see ``npz_bytes``)."""
-    atomic_write_bytes(path, npz_bytes(arrays, compress))
+    """Atomically write ``arrays`` as a deterministic ``.npz`` file (``compress``: see ``npz_bytes``),
+    streamed into the file rather than assembled in memory first."""
+    atomic_write(path, lambda f: _write_npz(f, arrays, compress))

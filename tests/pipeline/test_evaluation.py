@@ -14,7 +14,6 @@ from anchordp3.logs import Capture
 from anchordp3.pipeline.evaluation import (
     EVAL_DIR,
     LOG_FILE,
-    EvalOptions,
     eval_seeds,
     run_evaluation,
     wilson_interval,
@@ -22,6 +21,7 @@ from anchordp3.pipeline.evaluation import (
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import has_manifest, read_manifest
 from anchordp3.pipeline.training import MODELS, train_models
+from anchordp3.schemas.evaluation import EvalOptions
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.training import TrainingConfig
 from tiny_models import tiny_data, tiny_training

@@ -15,7 +15,8 @@ from ray import cloudpickle
 
 from anchordp3.pipeline.graph import EpisodeItem, Graph, Stage, StageOutput
 from anchordp3.pipeline.noop import NOOP_GROUP, NOOP_STOP_EVERY, NoopFinalInfo, NoopFirstInfo, NoopGroupInfo, NoopStepInfo, noop_graph
-from anchordp3.pipeline.runner import RunOptions, fingerprints, run_pipeline, stage_changes
+from anchordp3.pipeline.graph import fingerprints
+from anchordp3.pipeline.runner import RunOptions, run_pipeline, stage_changes
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.work import DATA_GRAPH
 from anchordp3.schemas.records import Payload, RolloutInfo

@@ -1,19 +1,30 @@
-"""The simulator's task classes, by name: one class per registered task (``schemas/tasks.py``)."""
+"""The simulator's task classes, by name: one class per registered task (``schemas/tasks.py``).
+
+Every module of this package is imported here, so a task class anywhere in it registers itself
+(``Task.registered``) by setting its ``spec``: adding a task is one spec and one class.
+"""
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
+
 from anchordp3.schemas.tasks import TASK_NAMES
 from anchordp3.sim.tasks.base import Task
-from anchordp3.sim.tasks.blocks import BlocksRankingRGB, StackBlocksThree
-from anchordp3.sim.tasks.bottles_dustbin import PutBottlesDustbin
-from anchordp3.sim.tasks.dual_shoes import PlaceDualShoes
-from anchordp3.sim.tasks.phone_stand import PlacePhoneStand
-from anchordp3.sim.tasks.place_object_scale import PlaceBell, PlaceMouse, PlaceStapler
 
-_CLASSES = (PlaceMouse, PlaceStapler, PlaceBell, BlocksRankingRGB, StackBlocksThree, PlaceDualShoes, PutBottlesDustbin,
-            PlacePhoneStand)
-TASKS: dict[str, type[Task]] = {name: next(c for c in _CLASSES if c.spec.name == name) for name in TASK_NAMES}
-"""Every registered task's class, in model-id order (a registered task without a class fails here, at import)."""
+for _module in pkgutil.iter_modules(__path__):
+    importlib.import_module(f"{__name__}.{_module.name}")
+
+
+def _by_id() -> dict[str, type[Task]]:
+    missing = [n for n in TASK_NAMES if n not in Task.registered]
+    if missing:
+        raise ImportError(f"tasks {missing} are registered in schemas/tasks.py but no class in sim/tasks/ sets their spec")
+    return {name: Task.registered[name] for name in TASK_NAMES}
+
+
+TASKS: dict[str, type[Task]] = _by_id()
+"""Every registered task's class, in model-id order."""
 
 
 def get_task(name: str) -> type[Task]:

@@ -21,21 +21,26 @@ class LayoutFailure(RuntimeError):
 class Task(ABC):
     """One manipulation task on a ``World``.
 
-    Subclasses set ``spec`` (their entry in the task registry, ``schemas/tasks.py``, which gives
-    them their ``name``), ``description`` (one sentence a person would say), ``step_limit`` (control
-    steps) and implement the four methods below. ``setup()`` builds the task objects, then clutter
-    outside their areas (``keep_out``).
+    A subclass that sets ``spec`` (its entry in the task registry, ``schemas/tasks.py``) is a
+    registered task: it takes its ``name``, ``description`` and ``step_limit`` from the spec and is
+    found by name (``sim.tasks.get_task``) wherever its module lives in ``sim/tasks/``. It
+    implements ``build``, ``critical_objects``, ``plan`` and ``evaluate``; ``setup()`` builds the
+    task objects, then clutter outside their areas (``keep_out``).
     """
 
     spec: ClassVar[TaskSpec]
     name: ClassVar[str]  # spec.name, set when the class is defined
-    description: ClassVar[str]
-    step_limit: ClassVar[int]
+    description: ClassVar[str]  # spec.description
+    step_limit: ClassVar[int]  # spec.step_limit, control steps
+    registered: ClassVar[dict[str, type["Task"]]] = {}  # every class that sets ``spec``, by task name
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
         if "spec" in cls.__dict__:
-            cls.name = cls.spec.name
+            cls.name, cls.description, cls.step_limit = cls.spec.name, cls.spec.description, cls.spec.step_limit
+            if cls.name in Task.registered:
+                raise TypeError(f"task {cls.name!r}: two classes ({Task.registered[cls.name].__qualname__}, {cls.__qualname__}) set its spec")
+            Task.registered[cls.name] = cls
 
     def __init__(self, world: World):
         self.world = world
@@ -61,8 +66,13 @@ class Task(ABC):
         """Run the expert's atomic operations to solve the task (raises ``ExpertFailure``)."""
 
     @abstractmethod
+    def evaluate(self) -> dict[str, bool]:
+        """The task's success conditions now, by name (``mouse_on_scale``, ``released``, ...), in a
+        fixed order: the episode succeeds when all hold, and a failed one names those that did not."""
+
     def check_success(self) -> bool:
-        """Whether the scene is in a success state now."""
+        """Whether the scene is in a success state now: every condition of ``evaluate`` holds."""
+        return all(self.evaluate().values())
 
     def instruction(self) -> str:
         """A language description of this episode's goal."""
@@ -89,4 +99,4 @@ class Task(ABC):
 
     def gripper_open(self, arm: str, threshold: float = 0.8) -> bool:
         """Whether ``arm``'s gripper is (nearly) open."""
-        return self.world.robot.gripper(arm) > threshold
+        return bool(self.world.robot.gripper(arm) > threshold)

@@ -58,8 +58,6 @@ class StackBlocksThree(_BlocksTask):
     """Stack red, green and blue blocks, in that order from the bottom, at a marked spot."""
 
     spec = STACK_BLOCKS_THREE
-    description = "Stack the three blocks at the target spot: red at the bottom, then green, then blue on top."
-    step_limit = 2000
 
     def build(self) -> None:
         self.target = np.array(self.table_xy((-0.08, -0.12), (0.08, -0.02), [], radius=0.0))
@@ -74,23 +72,20 @@ class StackBlocksThree(_BlocksTask):
             target = np.array([self.target[0], self.target[1], self.world.table_top + h + level * 2 * h])
             self._pick_place(expert, block, target)
 
-    def check_success(self) -> bool:
-        ps = [self._block_xyz(b) for b in self.blocks]
-        if np.linalg.norm(ps[0][:2] - self.target) > 0.025:
-            return False
-        for lower, upper in zip(ps, ps[1:]):
-            d = upper - lower
-            if abs(d[0]) > 0.025 or abs(d[1]) > 0.025 or abs(d[2] - 2 * self.block_half) > 0.012:
-                return False
-        return self.gripper_open("left") and self.gripper_open("right")
+    def evaluate(self) -> dict[str, bool]:
+        ps = {b: self._block_xyz(b) for b in self.blocks}
+        out = {f"{self.blocks[0]}_on_target": bool(np.linalg.norm(ps[self.blocks[0]][:2] - self.target) <= 0.025)}
+        for lower, upper in zip(self.blocks, self.blocks[1:]):
+            d = ps[upper] - ps[lower]
+            out[f"{upper}_on_{lower}"] = bool(abs(d[0]) <= 0.025 and abs(d[1]) <= 0.025 and abs(d[2] - 2 * self.block_half) <= 0.012)
+        out["released"] = self.gripper_open("left") and self.gripper_open("right")
+        return out
 
 
 class BlocksRankingRGB(_BlocksTask):
     """Line up red, green and blue blocks from left to right (world -x to +x) in a row."""
 
     spec = BLOCKS_RANKING_RGB
-    description = "Put the red, green and blue blocks in a row, in that order from left to right."
-    step_limit = 2000
     spacing = 0.08
 
     def build(self) -> None:
@@ -107,9 +102,10 @@ class BlocksRankingRGB(_BlocksTask):
             target = np.array([*self.row[i], self.world.table_top + self.block_half])
             self._pick_place(expert, self.blocks[i], target)
 
-    def check_success(self) -> bool:
-        ps = [self._block_xyz(b) for b in self.blocks]
-        for a, b in zip(ps, ps[1:]):
-            if not (0 < b[0] - a[0] < 0.10) or abs(b[1] - a[1]) > 0.03:
-                return False
-        return self.gripper_open("left") and self.gripper_open("right")
+    def evaluate(self) -> dict[str, bool]:
+        ps = {b: self._block_xyz(b) for b in self.blocks}
+        out = {}
+        for a, b in zip(self.blocks, self.blocks[1:]):  # left to right: world -x to +x, in line
+            out[f"{b}_right_of_{a}"] = bool(0 < ps[b][0] - ps[a][0] < 0.10 and abs(ps[b][1] - ps[a][1]) <= 0.03)
+        out["released"] = self.gripper_open("left") and self.gripper_open("right")
+        return out

@@ -120,8 +120,6 @@ class PutBottlesDustbin(Task):
     above the rim, and lets go (a fall of a few centimetres)."""
 
     spec = PUT_BOTTLES_DUSTBIN
-    description = "Put all the bottles into the dustbin."
-    step_limit = 3000  # 3 × RoboTwin's 1000: its frames come at ~16.7 Hz (every 15 steps at 250 Hz), our control at 50 Hz
     drop_clearance = 0.025  # bottle bottom above the rim (and the bottles in the bin) when carried in, metres
     place_drop = 0.004  # bottle bottom above the table when stood at the handover spot, metres
 
@@ -277,5 +275,5 @@ class PutBottlesDustbin(Task):
         return (float(np.hypot(centre[0], centre[1])) < self.bin.inner_radius
                 and float(centre[2]) > self.bin.floor and lower < self.bin.height)
 
-    def check_success(self) -> bool:
-        return all(self.bottle_in_bin(b) for b in self.bottles)
+    def evaluate(self) -> dict[str, bool]:
+        return {f"{b}_in_bin": self.bottle_in_bin(b) for b in self.bottles}

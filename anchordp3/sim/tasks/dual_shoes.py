@@ -89,8 +89,6 @@ class PlaceDualShoes(Task):
     """Both arms put a pair of shoes side by side on the mat, toes pointing the mat's way."""
 
     spec = PLACE_DUAL_SHOES
-    description = "Use both arms to put the pair of shoes side by side on the mat, toes pointing forward."
-    step_limit = 1800  # 3 × RoboTwin's 600: its frames come at ~16.7 Hz (every 15 steps at 250 Hz), our control at 50 Hz
     position_tolerance = 0.05  # shoe origin to its target, metres (RoboTwin)
     heading_tolerance = np.deg2rad(20.0)  # shoe heading to the mat's, radians
     upright_tolerance = np.deg2rad(20.0)  # shoe z axis to vertical, radians
@@ -160,15 +158,18 @@ class PlaceDualShoes(Task):
             expert.home((arm,))
 
     # ----------------------------------------------------------------------------- success
-    def shoe_ok(self, arm: str) -> bool:
-        """Whether the ``arm``-side shoe is upright at its target with the mat's heading."""
+    def shoe_conditions(self, arm: str) -> dict[str, bool]:
+        """The ``arm``-side shoe: at its target on the mat, upright, toes along the mat's heading."""
         pose = self.world.objects[self.shoes[arm]].pose
         m = pose.to_transformation_matrix()
-        near = float(np.linalg.norm(np.asarray(pose.p[:2]) - self.targets[arm])) < self.position_tolerance
-        upright_ = float(m[2, 2]) > np.cos(self.upright_tolerance)
-        aligned = abs(wrap_angle(entity_yaw(pose) - self.heading)) < self.heading_tolerance
-        return near and upright_ and aligned
+        return {f"{arm}_shoe_on_mat": float(np.linalg.norm(np.asarray(pose.p[:2]) - self.targets[arm])) < self.position_tolerance,
+                f"{arm}_shoe_upright": bool(float(m[2, 2]) > np.cos(self.upright_tolerance)),
+                f"{arm}_shoe_toes_forward": bool(abs(wrap_angle(entity_yaw(pose) - self.heading)) < self.heading_tolerance)}
 
-    def check_success(self) -> bool:
-        return (self.shoe_ok("left") and self.shoe_ok("right")
-                and self.gripper_open("left") and self.gripper_open("right"))
+    def shoe_ok(self, arm: str) -> bool:
+        """Whether the ``arm``-side shoe is upright at its target with the mat's heading."""
+        return all(self.shoe_conditions(arm).values())
+
+    def evaluate(self) -> dict[str, bool]:
+        return {**self.shoe_conditions("left"), **self.shoe_conditions("right"),
+                "released": self.gripper_open("left") and self.gripper_open("right")}

@@ -117,8 +117,6 @@ class PlacePhoneStand(Task):
     """Put the phone on the stand, leaning on its back plate."""
 
     spec = PLACE_PHONE_STAND
-    description = "Pick up the phone and put it on the phone stand."
-    step_limit = 1200  # 3 × RoboTwin's 400: its frames come at ~16.7 Hz (every 15 steps at 250 Hz), our control at 50 Hz
     tolerance = (0.045, 0.02, 0.02)  # functional points, stand frame (across, depth, up), metres (RoboTwin)
     lean_tolerance = np.deg2rad(15.0)  # phone long axis to the plate's, radians
     edge_clearance = 0.004  # the phone's lower edge above the base when released, metres
@@ -209,12 +207,12 @@ class PlacePhoneStand(Task):
         return candidates[0][1], normal + np.array([0.0, 0.0, self.approach_rises[0]])  # none: the move raises ik_failure
 
     # ----------------------------------------------------------------------------- success
-    def check_success(self) -> bool:
+    def evaluate(self) -> dict[str, bool]:
         phone_fp, stand_fp = self.functional_points()
         s = self._stand_frame()
         d = s[:3, :3].T @ (phone_fp - stand_fp)
-        near = all(abs(float(v)) < tol for v, tol in zip(d, self.tolerance))
         axis = pose_matrix(self.world.objects["phone"].pose)[:3, 0]
         plate_up = s[:3, :3] @ self.stand.up
-        leaning = abs(float(axis @ plate_up)) > np.cos(self.lean_tolerance)
-        return near and leaning and self.gripper_open(self.arm)
+        return {"phone_on_stand": all(abs(float(v)) < tol for v, tol in zip(d, self.tolerance)),
+                "phone_leaning_on_plate": bool(abs(float(axis @ plate_up)) > np.cos(self.lean_tolerance)),
+                "released": self.gripper_open(self.arm)}

@@ -173,7 +173,6 @@ class _PlaceOnScale(Task):
     """Pick one object with the arm on its side and put it on the electronic scale's pad."""
 
     noun: ClassVar[str]
-    step_limit = 800
     xy_tolerance = 0.035  # object xy to the functional point, metres (RoboTwin)
     drop = 0.004  # the object's bottom is released this far above the pad, metres
     region = ((0.06, 0.32), (-0.12, 0.16))  # |x| and y ranges of object and scale centres, metres
@@ -250,11 +249,12 @@ class _PlaceOnScale(Task):
         target = self.functional_point() + [0.0, 0.0, self.drop]
         return top_down_pose(target - offset, place_finger)
 
-    def check_success(self) -> bool:
+    def evaluate(self) -> dict[str, bool]:
         p = np.asarray(self.world.objects[self.noun].pose.p, dtype=np.float64)
         goal = self.functional_point()
-        return (float(np.linalg.norm(p[:2] - goal[:2])) < self.xy_tolerance and p[2] > goal[2] - 0.01
-                and self.gripper_open(self.arm))
+        return {"over_pad": float(np.linalg.norm(p[:2] - goal[:2])) < self.xy_tolerance,  # RoboTwin's xy tolerance
+                "on_pad": bool(p[2] > goal[2] - 0.01),  # not fallen beside it
+                "released": self.gripper_open(self.arm)}
 
 
 class PlaceMouse(_PlaceOnScale):
@@ -262,7 +262,6 @@ class PlaceMouse(_PlaceOnScale):
 
     spec = PLACE_MOUSE
     noun = "mouse"
-    description = "Pick up the mouse and place it on the electronic scale."
 
     def make_object(self) -> ObjectModel:
         return mouse_model(self.rng)
@@ -273,7 +272,6 @@ class PlaceStapler(_PlaceOnScale):
 
     spec = PLACE_STAPLER
     noun = "stapler"
-    description = "Pick up the stapler and place it on the electronic scale."
 
     def make_object(self) -> ObjectModel:
         return stapler_model(self.rng)
@@ -284,7 +282,6 @@ class PlaceBell(_PlaceOnScale):
 
     spec = PLACE_BELL
     noun = "bell"
-    description = "Pick up the bell and place it on the electronic scale."
 
     def make_object(self) -> ObjectModel:
         return bell_model(self.rng)

@@ -1,0 +1,53 @@
+"""Closed-loop evaluation settings, written once: ``EvalSettings`` (how episodes are decided and
+run) is the ``eval:`` section of the experiment and recipe configs; ``EvalOptions`` adds what is
+evaluated and where (models, tasks, seeds, folder, cluster). ``anchordp3 eval``'s flags are made
+from ``EvalOptions``'s fields, their help from the descriptions below.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal, get_args
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+DEFAULT_EPISODES = 10  # unseen seeds per task when neither seeds nor episodes are given
+Through = Literal["pose", "joints"]  # how an anchor is carried out: its end-effector poses by IK, or its joints
+EXECUTE_THROUGH: tuple[str, ...] = get_args(Through)
+
+
+class EvalSettings(BaseModel):
+    """How closed-loop evaluation decides and runs its episodes."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    episodes: int | None = Field(default=None, ge=1, description=f"Episodes per task: unseen seeds (default {DEFAULT_EPISODES}), or the first of the training seeds with seeds 'train'.")
+    workers: int = Field(default=2, ge=1, description="Ray actors running episodes in parallel.")
+    cpus_per_worker: float = Field(default=1.0, gt=0, description="CPUs each actor reserves.")
+    max_decisions: int | None = Field(default=None, ge=1, description="Cap on policy calls per episode (default: only the task's step limit).")
+    through: Through = Field(default="pose", description="pose: carry out an anchor through its end-effector poses (IK); joints: through its joint angles (the report).")
+    samples: int = Field(default=1, ge=1, le=64, description="Anchor sequences drawn per decision; their medoid is carried out (1: one sample, as the report).")
+    ddim_steps: int | None = Field(default=None, ge=1, le=100, description="DDIM steps per decision (default: the policy's own, 10 as DP3; 5 costs half and, on the shipped policy, +0.1 cm first-anchor error).")
+    noise_scale: float | None = Field(default=None, ge=0, le=1, description="Scale of the noise each decision's sampling starts from: 1 a random draw (DP3, the report), 0 the prior's mean, deterministic (default: the policy's own).")
+    device: str = Field(default="auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="Torch device of the actors: auto (CUDA when the cluster has GPUs, each actor an equal share), cpu or cuda.")
+    first_seed: int | None = Field(default=None, ge=0, description="First unseen evaluation seed (default: max training seed + 1000; it must lie above every training seed).")
+    strips: int = Field(default=2, ge=0, description="Episodes per task (the first seeds) that also get a frame strip, strips/<task>/<seed>.png.")
+
+
+class EvalOptions(EvalSettings):
+    """One evaluation: the settings, and which models on which tasks and seeds, written where."""
+
+    models: str | None = Field(default=None, description="Models folder (segmenter/, classifier/, policy/) or 'pretrained' (default: the run's).")
+    tasks: tuple[str, ...] | None = Field(default=None, description="Comma-separated tasks (default: every task the models were trained on).")
+    seeds: str | None = Field(default=None, description="Seeds, e.g. 2000-2049, or 'train' for the training seeds (default: --episodes unseen seeds).")
+    preset: str | None = Field(default=None, description="Randomization preset of the scenes (default: the training data's).")
+    out: Path | None = Field(default=None, description="Evaluation folder (default: <run>/eval).")
+    address: str | None = Field(default=None, description="Ray cluster address (default: $RAY_ADDRESS, else a local Ray).")
+
+    @field_validator("tasks", mode="before")
+    @classmethod
+    def _tasks(cls, v):
+        """A comma-separated string (the command line's form) or a list of names."""
+        if isinstance(v, str):
+            v = [t.strip() for t in v.split(",") if t.strip()]
+        return None if v is None or len(v) == 0 else tuple(v)
