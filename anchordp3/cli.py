@@ -307,10 +307,10 @@ def demo(
 def status(
     run_dir: Path = typer.Argument(..., help="Run directory."),
 ) -> None:
-    """One line per data stage: done/failed/planned, complete, compute seconds, fingerprint, stale."""
-    from anchordp3.pipeline.inspect import run_status, status_table
+    """One line per data stage, trained model and evaluation: done/failed/planned, complete, compute seconds, fingerprint, stale."""
+    from anchordp3.pipeline.inspect import product_status, run_status, status_table
 
-    typer.echo(status_table(run_status(run_dir)))
+    typer.echo(status_table(run_status(run_dir) + product_status(run_dir)))
 
 
 @app.command()
@@ -430,11 +430,11 @@ def eval_(
     options: EvalOptions = None,
 ) -> None:
     """Closed-loop evaluation: success rate per task with 95 % intervals, table, chart, report in <run>/eval (or --out)."""
-    from anchordp3.pipeline.evaluation import evaluation_summary, run_evaluation
+    from anchordp3.pipeline.evaluation import evaluation_folder, evaluation_summary, run_evaluation
 
     records = run_evaluation(run_dir, options)
     typer.echo(evaluation_summary(records))
-    typer.echo(f"report: {(options.out or Path(run_dir) / 'eval') / 'report.md'}")
+    typer.echo(f"report: {evaluation_folder(run_dir, options) / 'report.md'}")
 
 
 experiment_app = typer.Typer(no_args_is_help=True, help="Experiments that compare data recipes end to end.")

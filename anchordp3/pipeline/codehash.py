@@ -41,7 +41,7 @@ def imported_modules(name: str, tree: ast.Module, root: Path) -> set[str]:
     is_package = module_path(name, root) == root.joinpath(*name.split(".")[1:]) / "__init__.py"
     here = name.split(".") if is_package else name.split(".")[:-1]
     found: set[str] = set()
-    for node in ast.walk(tree):
+    for node in statements(tree):
         if isinstance(node, ast.Import):
             found.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -52,6 +52,23 @@ def imported_modules(name: str, tree: ast.Module, root: Path) -> set[str]:
             found.add(base)
             found.update(f"{base}.{a.name}" for a in node.names)  # `from pkg import module`
     return {m for m in found if m.split(".")[0] == PACKAGE and module_path(m, root) is not None}
+
+
+_BLOCKS = ("body", "orelse", "finalbody", "handlers", "cases")  # the fields of a node that hold statements
+
+
+def statements(tree: ast.AST):
+    """Every statement of ``tree`` (and the module itself, except handlers and match cases), at
+    any depth: imports and docstrings are statements, so they are all here, without visiting the
+    far more numerous expression nodes that ``ast.walk`` does."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        yield node
+        for field in _BLOCKS:
+            children = getattr(node, field, None)
+            if isinstance(children, list):
+                todo.extend(children)
 
 
 def with_parents(name: str) -> list[str]:
@@ -103,7 +120,7 @@ def _stamp(path: Path) -> tuple[int, int]:
 @lru_cache(maxsize=1024)
 def _source(path: str, mtime_ns: int, size: int) -> tuple[ast.Module, str]:
     tree = ast.parse(Path(path).read_bytes(), filename=path)
-    for node in ast.walk(tree):
+    for node in statements(tree):
         body = getattr(node, "body", None)
         if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
                 and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)

@@ -87,7 +87,8 @@ def run_demo(run_dir: Path, cfg: RunConfig, opts: DemoOptions = DemoOptions()) -
     if not opts.evaluate:
         return png
     log.info("\n== 3/3 closed-loop evaluation on held-out seeds and instruction phrasings")
-    eval_opts = EvalOptions(episodes=opts.episodes, workers=opts.workers, max_decisions=opts.max_decisions, address=opts.address)
+    eval_opts = EvalOptions(episodes=opts.episodes, workers=opts.workers, max_decisions=opts.max_decisions, address=opts.address,
+                            force=True)  # the demo's own folder: what it evaluated before gives way
     records = run_evaluation(run_dir, eval_opts, cfg)
     log.info("\n" + evaluation_summary(records))
     report = run_dir / EVAL_DIR / "report.md"
@@ -95,7 +96,7 @@ def run_demo(run_dir: Path, cfg: RunConfig, opts: DemoOptions = DemoOptions()) -
     if opts.pretrained_episodes and shipped_models_present():
         log.info("\n== and the shipped policy (`--models pretrained`, made by configs/recipe.yaml) on the same kind of unseen seeds")
         shipped = EvalOptions(models=PRETRAINED, episodes=opts.pretrained_episodes, workers=opts.workers, address=opts.address,
-                              max_decisions=opts.pretrained_max_decisions, out=run_dir / PRETRAINED_EVAL_DIR)
+                              max_decisions=opts.pretrained_max_decisions, out=run_dir / PRETRAINED_EVAL_DIR, force=True)
         log.info("\n" + evaluation_summary(run_evaluation(None, shipped)))
         log.info(f"Report: {run_dir / PRETRAINED_EVAL_DIR / 'report.md'}")
     log.info(f"Inspect the run: anchordp3 status {run_dir} | anchordp3 inspect {run_dir} render | anchordp3 show {run_dir} --frame 3")

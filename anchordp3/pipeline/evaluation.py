@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,9 +23,10 @@ import ray
 import anchordp3
 from anchordp3.dataset.files import file_sha256
 from anchordp3.logs import Capture, WorkerRecord, replay, to_file
+from anchordp3.pipeline.actors import FAULTS_ENV, one_line, parse_faults
 from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.runner import ensure_ray
-from anchordp3.pipeline.store import ManifestStore, StaleStageError
+from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_summary
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.records import EvalEpisodeInfo
 from anchordp3.schemas.episode import parse_seeds
@@ -39,6 +41,7 @@ STAGE = "evaluate"
 LOG_FILE = "eval.log"  # the evaluation's messages, its workers' included, appended per invocation
 SEED_OFFSET = 1000
 MODEL_NAMES = ("segmenter", "classifier", "policy")
+EPISODE_RETRIES = 2  # an episode whose worker dies starts again on a new one, at most this many times
 PROTOCOL_MODULE = "anchordp3.stages.evaluate"  # the decision loop and how a prediction is carried out
 
 
@@ -142,7 +145,7 @@ class EvalWorker:
     """Loads the models once, then runs episodes one at a time."""
 
     def __init__(self, models_dir: str, out_dir: str, cfg_json: str, device: str, ddim_steps: int | None = None,
-                 samples: int = 1, noise_scale: float | None = None):
+                 samples: int = 1, noise_scale: float | None = None, faults: str = ""):
         import torch
 
         from anchordp3.stages.evaluate import EvalModels
@@ -151,15 +154,19 @@ class EvalWorker:
         self.out = Path(out_dir)
         self.cfg = RunConfig.model_validate_json(cfg_json)
         self.models = EvalModels(Path(models_dir), device, ddim_steps, samples, noise_scale)
+        self.faults = parse_faults(faults)
 
     def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None,
-            through: str) -> tuple[dict, tuple[WorkerRecord, ...]]:
-        """One episode: its ``EvalRecord`` as a dict, and what was logged while it ran."""
+            through: str, attempt: int = 1) -> tuple[dict, tuple[WorkerRecord, ...]]:
+        """One episode: its ``EvalRecord`` as a dict, and what was logged while it ran. An injected
+        crash (``evaluate:<task>/<seed>:n:crash``) ends this process at the episode's second decision."""
         from anchordp3.stages.evaluate import evaluate_episode
 
+        n, crash = self.faults.get((STAGE, episode_item(task, seed)), (0, False))
+        watch = (lambda ep, decision, points, pred: decision == 1 and os._exit(1)) if crash and attempt <= n else None
         path = self.out / strip if strip else None
         with Capture() as cap:
-            rec = evaluate_episode(task, seed, self.models, self.cfg, max_decisions, path, through).to_dict()
+            rec = evaluate_episode(task, seed, self.models, self.cfg, max_decisions, path, through, watch).to_dict()
         return rec, tuple(cap.records)
 
 
@@ -201,23 +208,32 @@ def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg:
     order. Output in ``opts.out`` (else ``<run>/eval``)."""
     models_dir = models_folder(run_dir, opts.models)
     cfg = cfg or eval_run_config(run_dir, models_dir, opts)
-    if opts.out is not None:
-        out = Path(opts.out)
-    elif run_dir is not None:
-        out = Path(run_dir) / EVAL_DIR
-    else:
-        raise ValueError("--out: give an evaluation folder when there is no --run-dir")
+    out = evaluation_folder(run_dir, opts)
     fp = _fingerprint(models_dir, cfg, opts)
     seeds = selected_seeds(cfg, opts)  # before the folder exists: bad seeds create nothing
     with to_file(out / LOG_FILE):
         return _evaluate(models_dir, out, fp, cfg, opts, seeds)
 
 
+def evaluation_folder(run_dir: Path | None, opts: EvalOptions) -> Path:
+    """Where an evaluation goes: ``opts.out``, else ``<run>/eval``, else ``runs/eval-<models folder name>``."""
+    if opts.out is not None:
+        return Path(opts.out)
+    if run_dir is not None:
+        return Path(run_dir) / EVAL_DIR
+    return Path("runs") / f"eval-{models_folder(None, opts.models).resolve().name}"
+
+
 def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts: EvalOptions, seeds: list[int]) -> list[dict]:
     try:
         store = ManifestStore(out, STAGE, fp)
     except StaleStageError:
-        log.info("evaluate: the models or settings changed since the last evaluation; starting over")
+        stored = read_summary(out)
+        changed = ", ".join(stored.fingerprint.changes(fp)) if stored is not None else "fingerprint"
+        if not opts.force:
+            raise StaleStageError(f"--out: {out} holds an evaluation of other models, settings or code ({changed} changed); "
+                                  "give another folder, or --force to start over") from None
+        log.info(f"evaluate: {changed} changed since the last evaluation in {out}; starting over (--force)")
         store = ManifestStore(out, STAGE, fp, reset=True)
     todo = [(t, s) for t in cfg.tasks for s in seeds]
     pending = [ep for ep in todo if not store.done(episode_item(*ep))]
@@ -226,14 +242,20 @@ def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts
         ensure_ray(opts.address)
         n = max(1, min(opts.workers, len(pending)))
         device, gpus = actor_device(opts.device, n)
-        workers = [EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(
-            str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps, opts.samples, opts.noise_scale)
-            for _ in range(n)]
+        faults = os.environ.get(FAULTS_ENV, "")
+
+        def new_worker():
+            return EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(
+                str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps, opts.samples, opts.noise_scale, faults)
+
+        workers = [new_worker() for _ in range(n)]
         strip_seeds = set(seeds[:opts.strips])
+        attempts: dict[tuple[str, int], int] = {}
 
         def submit(w, ep):
             strip = f"strips/{ep[0]}/{ep[1]:06d}.png" if ep[1] in strip_seeds else None
-            running[w.run.remote(ep[0], ep[1], opts.max_decisions, strip, opts.through)] = (w, ep)
+            attempts[ep] = attempts.get(ep, 0) + 1
+            running[w.run.remote(ep[0], ep[1], opts.max_decisions, strip, opts.through, attempts[ep])] = (w, ep)
 
         queue = list(pending)
         running: dict = {}
@@ -246,7 +268,19 @@ def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts
             while running:
                 [ref], _ = ray.wait(list(running), num_returns=1)
                 w, ep = running.pop(ref)
-                rec, logs = ray.get(ref)
+                try:
+                    rec, logs = ray.get(ref)
+                except ray.exceptions.RayActorError as e:  # the worker died mid-episode (killed, out of memory, node lost)
+                    workers.remove(w)
+                    if attempts[ep] > EPISODE_RETRIES:
+                        raise RuntimeError(f"evaluate {episode_item(*ep)}: its worker died in each of {attempts[ep]} attempts "
+                                           f"({one_line(e)})") from None
+                    log.warning(f"evaluate: {ep[0]} seed {ep[1]}: its worker died ({one_line(e)}); the episode starts "
+                                f"again on a new worker (attempt {attempts[ep] + 1})")
+                    w = new_worker()
+                    workers.append(w)
+                    submit(w, ep)
+                    continue
                 replay(logs, f"evaluate {episode_item(*ep)}")
                 rel = f"episodes/{ep[0]}/{ep[1]:06d}.json"
                 atomic_write_bytes(out / rel, json.dumps(rec, indent=1).encode())
@@ -319,8 +353,10 @@ def write_reports(out: Path, records: Sequence[dict], cfg: RunConfig, opts: Eval
     rates = [r["rate"] for r in rows]
     err = [[r["rate"] - r["ci_low"] for r in rows], [r["ci_high"] - r["rate"] for r in rows]]
     ax.bar(x, rates, yerr=err, capsize=4, color="#4c72b0")
+    for xi, r in zip(x, rows):  # the count above every bar, so that a task at 0 shows too
+        ax.text(xi, min(r["ci_high"], 1.0) + 0.02, f"{r['successes']}/{r['episodes']}", ha="center", va="bottom", fontsize=8)
     ax.set_xticks(x, [r["task"] for r in rows], rotation=20, ha="right")
-    ax.set_ylim(0, 1)
+    ax.set_ylim(0, 1.12)
     ax.set_ylabel("success rate (95 % Wilson CI)")
     ax.set_title(f"{cfg.name}: closed-loop success")
     fig.tight_layout()

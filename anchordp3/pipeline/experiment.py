@@ -108,7 +108,7 @@ def run_experiment(out: Path, cfg: ExperimentConfig,
     records = {}
     for arm in ARMS:
         timed(arm, "train", lambda: train_models(out / arm, MODELS, cfg.training))
-        opts = cfg.eval.options(address=address, first_seed=first_seed)
+        opts = cfg.eval.options(address=address, first_seed=first_seed, force=True)
         records[arm] = timed(arm, "eval", lambda: run_evaluation(out / arm, opts, runs[arm]))
 
     results = _results(out, runs, records, seconds)

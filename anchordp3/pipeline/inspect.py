@@ -18,6 +18,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from anchordp3.pipeline.graph import CONFIG_FILE, fingerprints, translate_layout
 from anchordp3.pipeline.store import has_manifest, read_manifest, read_record, read_records, read_stopped, read_summary
 from anchordp3.pipeline.work import DATA_GRAPH, DATA_STAGES, STAGE_DIRS, stage_dir
+from anchordp3.dataset.files import file_sha256
+from anchordp3.schemas.dataset import INFO_FILE
 from anchordp3.schemas.manifest import ItemRecord, StageManifest
 from anchordp3.schemas.records import RolloutInfo
 from anchordp3.schemas.run import RunConfig, load_run_config
@@ -114,6 +116,45 @@ def run_status(run_dir: Path) -> list[StageStatus]:
     return out
 
 
+MODEL_NAMES = ("segmenter", "classifier", "policy")  # pipeline.training.MODELS, read without loading torch
+EVAL_STAGE = "evaluate"  # pipeline.evaluation.STAGE, read without loading Ray
+
+
+def product_status(run_dir: Path) -> list[StageStatus]:
+    """What was made from a run's data: one ``StageStatus`` per trained model (``models/<name>``)
+    and per evaluation folder in the run directory (``eval``, ``eval-*``). A model is stale when
+    the dataset (or, for the policy, the segmenter) it was trained on has changed since; an
+    evaluation of the run's own models when one of them has. Code and settings staleness is
+    ``train``'s and ``eval``'s to tell: they depend on the settings they are given."""
+    run_dir = check_run_dir(run_dir)
+    dataset = stage_dir(run_dir, "write") / INFO_FILE
+    now = {"dataset": file_sha256(dataset) if dataset.is_file() else None}
+    out = []
+    for name in MODEL_NAMES:
+        d = run_dir / "models" / name
+        model = d / "model.pt"
+        now[name] = file_sha256(model) if model.is_file() else None
+        out.append(_product_row(f"train {name}", d, lambda fp, name=name: [
+            f"upstream {k}" for k, v in fp.upstream.items() if k in now and v not in (now[k], (now[k] or "")[:16], "ground_truth")]))
+    for d in sorted(p for p in run_dir.glob("eval*") if p.is_dir() and has_manifest(p)):
+        own = d.name == "eval"  # the run's own models; other folders may hold any models' evaluation
+        out.append(_product_row(f"{EVAL_STAGE} ({d.name})", d, lambda fp, own=own: [
+            f"upstream {k}" for k, v in fp.upstream.items() if own and now.get(k) and v != now[k][:16]]))
+    return out
+
+
+def _product_row(stage: str, d: Path, changes) -> StageStatus:
+    """The status row of a model or evaluation folder ``d``; ``changes(fingerprint)`` says what changed upstream."""
+    m = read_summary(d) if d.is_dir() else None
+    if m is None:
+        return StageStatus(stage=stage, folder=d.name if stage.startswith(EVAL_STAGE) else f"models/{d.name}", ran=False)
+    changed = changes(m.fingerprint)
+    c = m.counts
+    return StageStatus(stage=stage, folder=d.name if stage.startswith(EVAL_STAGE) else f"models/{d.name}", ran=True,
+                       done=c.done, failed=c.failed, planned=c.planned, complete=m.complete, seconds=c.seconds,
+                       fingerprint=m.fingerprint.digest(), stale=True if changed else None, changed=changed)
+
+
 def status_table(statuses: list[StageStatus]) -> str:
     """The per-stage table: counts, complete, compute seconds, fingerprint, stale."""
     rows = []
@@ -121,16 +162,16 @@ def status_table(statuses: list[StageStatus]) -> str:
         if not st.ran:
             rows.append([st.stage, "-", "-", "-", "not run", "-", "-", "-"])
             continue
-        stale = "?" if st.stale is None else (f"STALE({','.join(dict.fromkeys(c.split()[0] for c in st.changed))})" if st.stale else "current")
+        stale = "-" if st.stale is None else (f"STALE({','.join(dict.fromkeys(c.split()[0] for c in st.changed))})" if st.stale else "current")
         rows.append([st.stage, st.done, st.failed, st.planned, "complete" if st.complete else "incomplete",
                      f"{st.seconds:.1f}", st.fingerprint, stale])
-    return text_table(["stage", "done", "failed", "planned", "state", "compute s", "fingerprint", "vs config and code"], rows)
+    return text_table(["stage", "done", "failed", "planned", "state", "compute s", "fingerprint", "vs config, code, upstream"], rows)
 
 
 def run_overview(run_dir: Path) -> str:
     """Heading (run name, tasks, episodes) and the per-stage table."""
     run_dir = check_run_dir(run_dir)
-    table = status_table(run_status(run_dir))
+    table = status_table(run_status(run_dir) + product_status(run_dir))
     cfg = run_config(run_dir)
     if cfg is None:
         return f"run {run_dir} (no {CONFIG_FILE})\n\n{table}"

@@ -36,12 +36,12 @@ def run_recipe(out: Path, cfg: RecipeConfig, address: str | None = None,
     clock.timed(GROUP, "data", lambda: run_pipeline(cfg.run, run, RunOptions(address=address, keep_outputs=keep_outputs)))
     clock.timed(GROUP, "train", lambda: train_models(run, MODELS, cfg.training))
     e = cfg.eval
-    unseen = clock.timed(GROUP, "eval", lambda: run_evaluation(run, e.options(out=out / "eval", address=address), cfg.run))
+    unseen = clock.timed(GROUP, "eval", lambda: run_evaluation(run, e.options(out=out / "eval", address=address, force=True), cfg.run))
     seen: list[dict] = []
     if e.train_episodes:
         seeds = ",".join(str(s) for s in cfg.run.seed_list[:e.train_episodes])
         seen = clock.timed(GROUP, "eval-train", lambda: run_evaluation(
-            run, e.options(seeds=seeds, episodes=None, out=out / "eval-train", strips=0, address=address), cfg.run))
+            run, e.options(seeds=seeds, episodes=None, out=out / "eval-train", strips=0, address=address, force=True), cfg.run))
     results = recipe_results(out, cfg, unseen, seen, clock.seconds[GROUP])
     atomic_write_bytes(out / "results.json", json.dumps(results, indent=1).encode())
     atomic_write_bytes(out / "report.md", recipe_report(results).encode())

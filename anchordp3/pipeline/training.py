@@ -163,6 +163,7 @@ def train_models(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force
                 missing = sorted(set(data.tasks) - set(run_cfg.tasks))
                 if missing:
                     raise ValueError(f"{stage_dir(run_dir, 'write')}: dataset tasks {missing} are not in the run config's tasks")
+            _preflight(run_dir, names, cfg, force)
             for name in (n for n in MODELS if n in names):
                 out.append(_train_one(run_dir, name, cfg, data, device, force, (stop_at or {}).get(name)))
     finally:
@@ -175,6 +176,45 @@ def _open_run_dataset(run_dir: Path) -> ShardedDataset:
     if not (d / INFO_FILE).is_file():
         raise ValueError(f"{d}: no complete dataset (no {INFO_FILE}); finish the data stages with `anchordp3 run` first")
     return open_dataset(d)
+
+
+def _preflight(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: bool) -> None:
+    """Refuse at once what training ``names`` would refuse only after training the models before
+    it: a model trained with another config, code or data (without ``force``), a policy on top of a
+    segmenter this call retrains, and a policy whose ``label_channel: auto`` finds no segmenter
+    (it would train on the simulator's masks, a policy the segmenter-fed closed loop never sees)."""
+    retrained: set[str] = set()
+    for name in (n for n in MODELS if n in names):
+        d = model_dir(run_dir, name)
+        stored = read_manifest(d) if d.is_dir() else None
+        if name == "policy":
+            if cfg.policy.label_channel == "auto" and "segmenter" not in names and trained_model(run_dir, "segmenter") is None:
+                raise ValueError(f"policy.label_channel 'auto': {model_dir(run_dir, 'segmenter')} holds no trained segmenter; "
+                                 "train it first (`anchordp3 train segmenter`, or `train all`), or set label_channel: "
+                                 "ground_truth to train on the simulator's masks")
+            if "segmenter" in retrained and stored is not None and stored.complete and not force:
+                raise ValueError(f"{d}: trained on the segmenter this call trains anew; pass --force to retrain it too")
+            if "segmenter" in retrained:
+                continue  # its fingerprint depends on the segmenter to come
+        fp = _fingerprint_of(run_dir, name, cfg)
+        if stored is not None and stored.fingerprint != fp:
+            if not force:
+                raise ValueError(f"{d}: trained with a different {_what_changed(stored.fingerprint, fp)}; pass --force to "
+                                 "retrain it, or the settings it was trained with to keep it")
+            retrained.add(name)
+        elif stored is None or not stored.complete:
+            retrained.add(name)
+
+
+def _fingerprint_of(run_dir: Path, name: str, cfg: TrainingConfig, channel=None) -> Fingerprint:
+    """Model ``name``'s fingerprint given the run's data (and, for the policy, its label channel)."""
+    upstream: dict[str, str] = {}
+    if name != "classifier":
+        upstream["dataset"] = file_sha256(stage_dir(run_dir, "write") / INFO_FILE)
+    if name == "policy":
+        channel = channel or _critical_channel(run_dir, cfg)
+        upstream["segmenter"] = channel.checksum or "ground_truth"
+    return fingerprint(cfg, name, upstream)
 
 
 def _critical_channel(run_dir: Path, cfg: TrainingConfig):
@@ -198,14 +238,8 @@ def _what_changed(old: Fingerprint, new: Fingerprint) -> str:
 def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDataset | None, device: torch.device,
                force: bool, stop_at: int | None) -> Trained:
     d = model_dir(run_dir, name)
-    upstream: dict[str, str] = {}
-    channel = None
-    if name != "classifier":
-        upstream["dataset"] = file_sha256(stage_dir(run_dir, "write") / INFO_FILE)
-    if name == "policy":
-        channel = _critical_channel(run_dir, cfg)
-        upstream["segmenter"] = channel.checksum or "ground_truth"
-    fp = fingerprint(cfg, name, upstream)
+    channel = _critical_channel(run_dir, cfg) if name == "policy" else None
+    fp = _fingerprint_of(run_dir, name, cfg, channel)
     try:
         store = ManifestStore(d, stage_name(name), fp)
     except StaleStageError:

@@ -41,7 +41,8 @@ class EvalOptions(EvalSettings):
     tasks: tuple[str, ...] | None = Field(default=None, description="Comma-separated tasks (default: every task the models were trained on).")
     seeds: str | None = Field(default=None, description="Seeds, e.g. 2000-2049, or 'train' for the training seeds (default: --episodes unseen seeds).")
     preset: str | None = Field(default=None, description="Randomization preset of the scenes (default: the training data's).")
-    out: Path | None = Field(default=None, description="Evaluation folder (default: <run>/eval).")
+    out: Path | None = Field(default=None, description="Evaluation folder (default: <run>/eval; without a run, runs/eval-<models folder name>).")
+    force: bool = Field(default=False, description="Start over where the folder holds an evaluation of other models, settings or code (default: refuse; the same ones resume).")
     address: str | None = Field(default=None, description="Ray cluster address (default: $RAY_ADDRESS, else a local Ray).")
 
     @field_validator("tasks", mode="before")

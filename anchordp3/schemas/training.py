@@ -368,7 +368,8 @@ class PolicyTrainingConfig(_Config):
     label_channel: Literal["auto", "segmenter", "ground_truth"] = Field(
         default="auto",
         description="Source of the 12th point channel in training: the trained segmenter's probability ('segmenter': "
-                    "required), the simulator label ('ground_truth'), or 'auto': the segmenter when the run has a trained one, else the label.",
+                    "required), the simulator label ('ground_truth'), or 'auto': the run's segmenter, trained before or in the same "
+                    "call (a policy alone on a run without one is refused, not trained on the labels).",
     )
     val_predict_samples: int = Field(default=64, ge=0, description="Validation samples (evenly spread over the split) denoised with DDIM (EMA weights) to measure the anchor error; 0: skip.")
     augment_translation: tuple[float, float, float] = Field(

@@ -173,12 +173,14 @@ STRIP_FRAMES = 8  # frames in an episode's strip picture, evenly spaced over its
 
 def write_strip(path: Path, frames: list[tuple[np.ndarray, str]], title: str) -> Path:
     """An episode's frame strip: up to ``STRIP_FRAMES`` of its ``(rgb (H, W, 3) uint8, label)``
-    frames, evenly spaced and always with the last, side by side; written atomically as PNG."""
+    frames, evenly spaced and always with the last, side by side; written atomically as PNG. When
+    frames are left out, the title says how many of how many are shown."""
     from anchordp3.stages.files import atomic_write_bytes
     from anchordp3.viz.mosaic import mosaic
 
     if len(frames) > STRIP_FRAMES:
         idx = np.unique(np.linspace(0, len(frames) - 1, STRIP_FRAMES).round().astype(int))
+        title = f"{title} ({len(idx)} of {len(frames)} frames, evenly spaced)"
         frames = [frames[i] for i in idx]
     img = mosaic([f for f, _ in frames], [label for _, label in frames], cols=len(frames), title=title)
     buf = io.BytesIO()

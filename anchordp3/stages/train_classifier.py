@@ -12,6 +12,7 @@ checkpoint) and writes ``model.pt``; ``load_classifier(path)`` gives back a read
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -37,6 +38,7 @@ from anchordp3.stages.training_loop import (
 log = logging.getLogger(__name__)
 
 KIND = "classifier"
+PROGRESS_S = 10.0  # seconds between progress lines while scoring the held-out instructions
 EVAL_BATCH = 256
 
 
@@ -88,11 +90,17 @@ class ClassifierJob(TrainingJob):
 
     @torch.no_grad()
     def evaluate(self) -> dict[str, float]:
-        """``loss`` and ``accuracy`` over every instruction of the held-out phrasing families."""
+        """``loss`` and ``accuracy`` over every instruction of the held-out phrasing families (a
+        progress line every ``PROGRESS_S`` seconds: on a CPU this takes a minute or more)."""
         self.model.eval()
         total, correct = 0.0, 0
+        t0 = last = time.perf_counter()
         try:
             for i in range(0, len(self.val_texts), EVAL_BATCH):
+                if time.perf_counter() - last > PROGRESS_S:
+                    last, rate = time.perf_counter(), i / (time.perf_counter() - t0)
+                    log.info(f"classifier: scored {i}/{len(self.val_texts)} held-out instructions, {rate:.0f}/s, "
+                             f"ETA {(len(self.val_texts) - i) / rate:.0f} s")
                 y = self.val_y[i:i + EVAL_BATCH]
                 with autocast(self.device, self.mixed_precision):
                     logits = self.model.logits(self.val_texts[i:i + EVAL_BATCH])

@@ -10,7 +10,9 @@ export); ``run_training(job, out_dir, ...)`` drives it and writes into ``out_dir
 - ``metrics.csv``: long format ``step, split, metric, value, elapsed_s`` (train rows every step,
   validation rows at every evaluation); on resume the rows after the checkpoint are dropped.
 - ``tensorboard/``: the same scalars as TensorBoard events (``train/loss``, ``val/iou``, ...).
-- ``loss.png``: training loss (raw and smoothed) and validation loss against the step.
+- ``loss.png``: training loss (raw and smoothed) and validation loss against the step, beside the
+  validation metrics that settings are chosen by (IoU, accuracy, first-anchor error, ...), each
+  evaluation's value written at its point.
 
 Batches come from ``epoch_batches``: epoch ``e`` is a permutation drawn from ``(seed, e)`` alone,
 so a run resumed at step ``k`` sees exactly the batches an uninterrupted run sees after step ``k``
@@ -264,22 +266,30 @@ def read_metrics(path: Path) -> list[dict[str, str]]:
 
 
 def plot_losses(metrics_csv: Path, png: Path, title: str) -> Path:
-    """``loss.png``: training loss per step (faint) and its moving average, validation loss at each
-    evaluation; log scale when the losses are positive. Uses matplotlib's Agg canvas (no pyplot,
-    no display, no global backend change)."""
+    """``loss.png``: on the left, training loss per step (faint) and its moving average, validation
+    loss at each evaluation (log scale when the losses are positive); on the right, when the job
+    reports them, the other validation metrics (all tasks together) at each evaluation, the value
+    written at each point so that a single evaluation reads as a number, not a dot. Uses
+    matplotlib's Agg canvas (no pyplot, no display, no global backend change)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     rows = read_metrics(metrics_csv)
     series: dict[str, tuple[list[int], list[float]]] = {}
+    scores: dict[str, tuple[list[int], list[float]]] = {}  # validation metrics but the loss, all tasks together
     for r in rows:
         if r["metric"] == "loss":
-            xs, ys = series.setdefault(r["split"], ([], []))
-            xs.append(int(r["step"]))
-            ys.append(float(r["value"]))
-    fig = Figure(figsize=(6.4, 4.0), dpi=100)
+            target = series.setdefault(r["split"], ([], []))
+        elif r["split"] == "val" and "/" not in r["metric"]:
+            target = scores.setdefault(r["metric"], ([], []))
+        else:
+            continue
+        target[0].append(int(r["step"]))
+        target[1].append(float(r["value"]))
+    fig = Figure(figsize=(11.0 if scores else 6.4, max(4.0, 1.4 * len(scores))), dpi=100)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
+    grid = fig.add_gridspec(max(1, len(scores)), 2 if scores else 1, width_ratios=[3, 2] if scores else [1])
+    ax = fig.add_subplot(grid[:, 0])
     if "train" in series:
         xs, ys = series["train"]
         ax.plot(xs, ys, color="tab:blue", alpha=0.25, linewidth=0.8, label="train (per step)")
@@ -287,6 +297,7 @@ def plot_losses(metrics_csv: Path, png: Path, title: str) -> Path:
     if "val" in series:
         xs, ys = series["val"]
         ax.plot(xs, ys, "o-", color="tab:orange", label="validation")
+        ax.annotate(f"{ys[-1]:.3g}", (xs[-1], ys[-1]), textcoords="offset points", xytext=(4, 6), color="tab:orange", fontsize=8)
     values = [v for _, ys in series.values() for v in ys]
     if values and min(values) > 0:
         ax.set_yscale("log")
@@ -296,6 +307,16 @@ def plot_losses(metrics_csv: Path, png: Path, title: str) -> Path:
     ax.grid(alpha=0.3)
     if series:
         ax.legend()
+    for k, (name, (xs, ys)) in enumerate(scores.items()):  # one small panel per metric, each its own scale
+        axk = fig.add_subplot(grid[k, 1], sharex=ax)
+        axk.plot(xs, ys, "o-", color="tab:green")
+        for x, y in zip(xs, ys):
+            axk.annotate(f"{y:.3g}", (x, y), textcoords="offset points", xytext=(-4, 4), ha="right", fontsize=8)
+        axk.set_ylabel(name, fontsize=8)
+        axk.tick_params(labelsize=7)
+        axk.grid(alpha=0.3)
+        if k == 0:
+            axk.set_title("validation metrics (all tasks)", fontsize=9)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")

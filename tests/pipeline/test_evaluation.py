@@ -4,6 +4,7 @@ report; seeds disjoint from training; the Wilson interval."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -119,6 +120,67 @@ def test_eval_takes_any_models_tasks_seeds_and_folder_and_marks_training_seeds(t
     assert [(r["seed"], r["seen"]) for r in unseen] == [(1500, False)]
     with pytest.raises(ValueError, match="--tasks"):
         run_evaluation(trained_run, EvalOptions(tasks=("place_bell",), out=tmp_path / "ev3"))
+
+
+def test_an_evaluation_folder_of_other_settings_is_refused_unless_forced_and_the_same_resumes(trained_run, tmp_path):
+    out = tmp_path / "ev"
+    first = run_evaluation(trained_run, EvalOptions(seeds="1500", out=out, workers=1, max_decisions=1, strips=0))
+    again = run_evaluation(trained_run, EvalOptions(seeds="1500", out=out, workers=1, max_decisions=1, strips=0))
+    assert again == first  # the same models and settings: resumed, nothing redone
+    with pytest.raises(ValueError, match=r"--out: .* holds an evaluation of other models, settings or code \(config changed\).*--force"):
+        run_evaluation(trained_run, EvalOptions(seeds="1500", out=out, workers=1, max_decisions=2, strips=0))
+    assert (out / "report.md").is_file()  # refused: the earlier evaluation is still there
+    forced = run_evaluation(trained_run, EvalOptions(seeds="1500", out=out, workers=1, max_decisions=2, strips=0, force=True))
+    assert [r["seed"] for r in forced] == [1500]
+
+
+def test_every_failed_episode_names_the_task_conditions_it_ended_without(trained_run, tmp_path):
+    records = run_evaluation(trained_run, EvalOptions(seeds="1500,1501", out=tmp_path / "ev", workers=1, max_decisions=1, strips=0))
+    names = {"over_pad", "on_pad", "released"}  # the place-on-scale tasks' conditions
+    for r in records:
+        unmet = set(filter(None, r["unmet"].split(",")))
+        assert (not unmet) == r["success"] and unmet <= names, r
+    assert "conditions unmet at the end" in (tmp_path / "ev" / "report.md").read_text()
+
+
+def test_status_lists_the_run_s_models_and_evaluations_beside_its_data_stages(trained_run, tmp_path):
+    from typer.testing import CliRunner
+
+    from anchordp3.cli import app
+    from anchordp3.pipeline.inspect import product_status
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    for d in run.glob("eval*"):  # what other tests evaluated in the shared run
+        shutil.rmtree(d)
+    run_evaluation(run, EvalOptions(seeds="1500", workers=1, max_decisions=1, strips=0))
+    rows = {r.stage: r for r in product_status(run)}
+    assert list(rows) == ["train segmenter", "train classifier", "train policy", "evaluate (eval)"]
+    assert all(r.complete and not r.stale for r in rows.values())
+    assert rows["evaluate (eval)"].done == 1 and rows["train policy"].folder == "models/policy"
+    out = CliRunner().invoke(app, ["status", str(run)]).output
+    assert "train policy" in out and "evaluate (eval)" in out and "write" in out
+    # retraining the segmenter under the policy makes the policy (and the evaluation of the run's models) stale
+    seg = run / "models" / "segmenter" / "model.pt"
+    seg.write_bytes(seg.read_bytes() + b"\0")
+    rows = {r.stage: r for r in product_status(run)}
+    assert rows["train policy"].stale and rows["train policy"].changed == ["upstream segmenter"]
+    assert rows["evaluate (eval)"].stale and not rows["train classifier"].stale
+
+
+def test_an_episode_whose_worker_is_killed_mid_episode_starts_again_and_ends_as_it_would_have(trained_run, tmp_path, monkeypatch):
+    from anchordp3.pipeline.actors import FAULTS_ENV
+
+    opts = dict(seeds="1500,1501", workers=1, max_decisions=2, strips=0)
+    clean = run_evaluation(trained_run, EvalOptions(out=tmp_path / "clean", **opts))
+    monkeypatch.setenv(FAULTS_ENV, "evaluate:place_mouse/001500:1:crash")  # the worker exits at the episode's 2nd decision
+    with Capture() as cap:
+        crashed = run_evaluation(trained_run, EvalOptions(out=tmp_path / "crashed", **opts))
+    assert any("its worker died" in r.message and "attempt 2" in r.message for r in cap.records)
+    drop = lambda rs: [{k: v for k, v in r.items() if k != "seconds"} for r in rs]  # noqa: E731
+    assert drop(crashed) == drop(clean)
+    m = read_manifest(tmp_path / "crashed")
+    assert m.counts.done == len(clean) and m.complete
 
 
 def test_shipped_models_are_small_and_decide_as_the_run_s_own(trained_run, tmp_path):

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 
 import pytest
 import yaml
@@ -72,6 +74,16 @@ def test_status_has_a_line_per_stage_with_counts_and_freshness(run):
     for s in DATA_STAGES:
         assert r[s][6] == read_manifest(stage_dir(run, s)).fingerprint.digest()
         assert r[s][7] == "current"
+
+
+@pytest.mark.parametrize("command", ["status", "inspect"])
+def test_reading_a_run_loads_neither_ray_nor_the_simulator_nor_torch(run, command):
+    code = ("import sys; from anchordp3.cli import app\n"
+            f"try:\n    app([{command!r}, {str(run)!r}])\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
+            "heavy = sorted({'ray', 'sapien', 'torch'} & set(sys.modules))\n"
+            "assert not heavy, heavy")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
 
 
 def test_status_marks_stages_stale_when_config_yaml_changed(copy):

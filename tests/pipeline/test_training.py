@@ -223,6 +223,28 @@ def test_pipeline_stop_then_rerun_resumes_and_stale_models_are_refused(trained, 
         train_models(run, ["policy"], cfg)
 
 
+def test_what_training_would_refuse_late_is_refused_before_anything_trains(trained, train_yaml, tmp_path):
+    src = trained[0]
+    run = tmp_path / "run"
+    shutil.copytree(src, run, ignore=shutil.ignore_patterns(".lock"))
+    cfg = load_training_config(train_yaml)
+    # a policy on a run without a segmenter: 'auto' would silently take the simulator's masks
+    shutil.rmtree(model_dir(run, "segmenter"))
+    with pytest.raises(ValueError, match="label_channel 'auto': .* no trained segmenter"):
+        train_models(run, ["policy"], cfg)
+    # train all would retrain the segmenter, then refuse the policy trained on the old one: refused first
+    policy_before = (model_dir(run, "policy") / "model.pt").read_bytes()
+    with pytest.raises(ValueError, match="trained on the segmenter this call trains anew; pass --force"):
+        train_models(run, ["segmenter", "classifier", "policy"], cfg)
+    assert not model_dir(run, "segmenter").exists()  # nothing was trained
+    assert (model_dir(run, "policy") / "model.pt").read_bytes() == policy_before
+    # a changed config of the last model is refused before the first one trains
+    shutil.copytree(model_dir(src, "segmenter"), model_dir(run, "segmenter"))
+    changed = load_training_config(train_yaml).model_copy(update={"policy": cfg.policy.model_copy(update={"val_predict_samples": 3})})
+    with pytest.raises(ValueError, match=r"models/policy: trained with a different training config; pass --force"):
+        train_models(run, ["segmenter", "classifier", "policy"], changed)
+
+
 def test_cli_train_reports_up_to_date_models_and_bad_input_in_one_line(trained, train_yaml, tmp_path):
     run = trained[0]
     cli = CliRunner()
