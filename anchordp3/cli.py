@@ -488,13 +488,12 @@ def export_pretrained(
     dest: Path = typer.Option(None, "--dest", help="Destination folder (default: the package's pretrained/, what `--models pretrained` loads)."),
     command: str = typer.Option("", "--command", help="The command that made the models, recorded beside them."),
     ddim_steps: int = typer.Option(None, "--ddim-steps", min=1, max=100, help="DDIM steps per decision of the shipped policy (default: the ones it was trained with)."),
-    noise_scale: float = typer.Option(None, "--noise-scale", min=0.0, max=1.0, help="Scale of the noise the shipped policy's sampling starts from: 1 a random draw (DP3), 0 the prior's mean, deterministic (default: its own)."),
 ) -> None:
     """Ship a run's three models as a self-contained models folder (EMA policy weights, the
     classifier's changed tensors only), with their manifests, training config and run config."""
     from anchordp3.pipeline.shipping import ship_models
 
-    typer.echo(ship_models(run_dir, dest, command, ddim_steps, noise_scale))
+    typer.echo(ship_models(run_dir, dest, command, ddim_steps))
 
 
 @export_app.command("lerobot")

@@ -64,7 +64,7 @@ class ReleaseWatch:
         """The gate the policy picks for the first anchor of ``arm`` (stay, object, pair or -) and
         the object tokens' centroids ``(K, 3)`` metres (None without gating)."""
         policy = self.models.policy
-        if policy.anchor_gates is None or policy.config.anchor_gating != "hard":
+        if policy.anchor_gates is None:
             return "-", None
         pts = torch.from_numpy(points.astype(np.float32))[None]
         obs = {"points": append_critical_probability(pts, self.models.segmenter.probabilities(pts)),

@@ -19,8 +19,7 @@ def append_critical_probability(points: torch.Tensor, probability: torch.Tensor)
 
 class PointEncoder(nn.Module):
     """AnchorDP3's lightweight encoder: per-point MLP (Linear-LayerNorm-ReLU, width ``hidden_dim``)
-    -> max-pool over points (and, with ``keypoints``, that many soft keypoints: ``soft_keypoints``)
-    -> Linear to ``out_dim`` -> LayerNorm.
+    -> max-pool over points -> Linear to ``out_dim`` -> LayerNorm.
 
     points: (B, N, in_channels) -> (B, out_dim)."""
 
@@ -33,26 +32,13 @@ class PointEncoder(nn.Module):
             layers += [nn.Linear(width, config.hidden_dim), nn.LayerNorm(config.hidden_dim), nn.ReLU(inplace=True)]
             width = config.hidden_dim
         self.per_point = nn.Sequential(*layers)
-        self.keypoint_scores = nn.Linear(config.hidden_dim, config.keypoints) if config.keypoints else None
-        self.project = nn.Sequential(nn.Linear(config.hidden_dim + config.in_channels * config.keypoints, config.out_dim),
-                                     nn.LayerNorm(config.out_dim))
+        self.project = nn.Sequential(nn.Linear(config.hidden_dim, config.out_dim), nn.LayerNorm(config.out_dim))
         self.out_dim = config.out_dim
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """points: (B, N, in_channels), xyz first -> (B, out_dim)."""
-        h = self.per_point(points)
-        pooled = h.max(dim=1).values  # max, not amax: its backward is a gather, 10x cheaper on CPU
-        if self.keypoint_scores is not None:
-            pooled = torch.cat([pooled, soft_keypoints(self.keypoint_scores(h), points)], dim=-1)
+        pooled = self.per_point(points).max(dim=1).values  # max, not amax: its backward is a gather, 10x cheaper on CPU
         return self.project(pooled)
-
-
-def soft_keypoints(scores: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Spatial softmax over a cloud: ``scores (B, N, K)`` per-point logits, ``points (B, N, C)`` ->
-    ``(B, K * C)``: keypoint k is the softmax(scores[..., k])-weighted mean of the points' channels
-    (its position, and its offsets from the grippers when the points carry them)."""
-    weights = torch.softmax(scores.float(), dim=1)  # (B, N, K), sums to 1 over the points
-    return torch.einsum("bnk,bnc->bkc", weights, points.float()).flatten(1).to(points.dtype)
 
 
 class TaskConditionedEncoder(nn.Module):

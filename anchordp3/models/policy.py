@@ -1,12 +1,11 @@
 """The anchor diffusion policy: one observation frame -> the next H anchors (H x 32).
 
 Observation: ``points (B, N, 12)`` (11 features + critical probability), ``state (B, 32)``,
-``task_id (B,)``. With ``gripper_points`` every point also carries its offset from each end
-effector (``gripper_offsets``) before the per-point MLP; with ``object_tokens`` the critical points'
-K clusters (``models.objects``) add their own feature to the condition, and with ``anchored_offsets``
-their offsets from each end effector, gated by the condition, are added to the denoiser's clean
-sample where it holds end-effector positions (``anchored_shift``; with ``gate_supervision`` the gates
-also learn which object each labelled anchor lies by, ``gate_loss``). The task's own point encoder and the state MLP give the FiLM condition of one
+``task_id (B,)``. With ``object_tokens`` the critical points' K clusters (``models.objects``) add
+their own feature to the condition, and with ``anchored_offsets`` the offset of the object a
+classifier picks per (slot, arm) is added to the denoiser's clean sample where it holds
+end-effector positions (``anchored_shift``; the classifier learns which object each labelled anchor
+lies by, ``gate_loss``). The task's own point encoder and the state MLP give the FiLM condition of one
 shared conditional 1-D U-Net, which denoises the ``(B, H, 32)`` anchor sequence with diffusers'
 ``DDIMScheduler`` (DP3's settings: 100 training steps, squaredcos_cap_v2, clip_sample,
 prediction_type ``sample``, 10 inference steps). Training loss: MSE over all H x 32 elements of the
@@ -48,14 +47,7 @@ def make_scheduler(config: DiffusionSchedulerConfig):
     )
 
 
-GRIPPER_OFFSET_SCALE = 2.0  # offsets of up to +-0.5 m map to +-1
-GATE_HIDDEN = 256  # hard anchor gating: width of the classifier's hidden layer
-
-
-def gripper_offsets(points: torch.Tensor, state: torch.Tensor, layout: StateLayout) -> torch.Tensor:
-    """Each point's offset from each arm's end effector: ``points (B, N, C)`` (xyz first, metres),
-    ``state (B, D)`` -> ``(B, N, 3 * arms)``, metres x ``GRIPPER_OFFSET_SCALE``, arms in ``ARMS`` order."""
-    return torch.cat([(points[..., :3] - state[:, None, layout.ee_xyz(arm)]) * GRIPPER_OFFSET_SCALE for arm in ARMS], dim=-1)
+GATE_HIDDEN = 256  # anchor gating: width of the classifier's hidden layer
 
 
 def medoid(samples: torch.Tensor) -> torch.Tensor:
@@ -80,9 +72,7 @@ class AnchorDiffusionPolicy(nn.Module):
         self.mixed_precision = mixed_precision
         self.point_channels = config.point_encoder.in_channels
         self.layout = StateLayout.of_length(config.action_dim)
-        extra = 3 * len(ARMS) if config.gripper_points else 0
-        encoder = config.point_encoder.model_copy(update={"in_channels": self.point_channels + extra})
-        self.point_encoder = TaskConditionedEncoder(config.num_tasks, encoder)
+        self.point_encoder = TaskConditionedEncoder(config.num_tasks, config.point_encoder)
         self.state_encoder = StateEncoder(config.state_encoder)
         self.object_encoder = None
         if config.object_tokens:
@@ -95,14 +85,10 @@ class AnchorDiffusionPolicy(nn.Module):
         self.delta_normalizer = MinMaxNormalizer(config.horizon * config.action_dim)  # relative targets, per slot
         self.noise_scheduler = make_scheduler(config.scheduler)
         self.anchor_gates = None
-        if config.anchored_offsets and config.anchor_gating == "hard":  # logits per (slot, arm): none or one offset
+        if config.anchored_offsets:  # logits per (slot, arm): none or one offset
             self.anchor_gates = nn.Sequential(
                 nn.Linear(config.cond_dim, GATE_HIDDEN), nn.Mish(),
                 nn.Linear(GATE_HIDDEN, config.horizon * len(ARMS) * (config.gate_choices + 1)))
-        elif config.anchored_offsets:  # one gate per (slot, arm, object); zero: the plain U-Net at the start
-            self.anchor_gates = nn.Linear(config.cond_dim, config.horizon * len(ARMS) * config.object_tokens)
-            nn.init.zeros_(self.anchor_gates.weight)
-            nn.init.zeros_(self.anchor_gates.bias)
 
     # ------------------------------------------------------------------------------ setup
     @property
@@ -142,10 +128,7 @@ class AnchorDiffusionPolicy(nn.Module):
     def _condition(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor | None]:
         """obs -> (FiLM condition (B, cond_dim), object tokens (B, K, token features) or None)."""
         points, state, task_id = self._observation(obs)
-        normed = self.point_normalizer(points)
-        if self.config.gripper_points:
-            normed = torch.cat([normed, gripper_offsets(points, state, self.layout)], dim=-1)
-        parts = [self.point_encoder(normed, task_id), self.state_encoder(self.state_normalizer(state))]
+        parts = [self.point_encoder(self.point_normalizer(points), task_id), self.state_encoder(self.state_normalizer(state))]
         tokens = None
         if self.object_encoder is not None:
             tokens = object_tokens(points, state, self.layout, self.config.object_tokens,
@@ -156,15 +139,12 @@ class AnchorDiffusionPolicy(nn.Module):
     def gates(self, cond: torch.Tensor) -> torch.Tensor:
         """The anchored offsets' gates from ``cond (B, cond_dim)``: ``(B, H, arms, gate_choices)``
         float32, one per (horizon slot, arm in ``ARMS`` order, offset: an object token, or with
-        ``held_offsets`` an (object, held object) pair, ``pair_offsets``). ``soft``: a linear function
-        of the condition; ``hard``: the one-hot of the classifier's choice (``gate_logits``), all zero
-        where it chose no object."""
-        if self.config.anchor_gating == "hard":
-            return F.one_hot(self.gate_logits(cond).argmax(-1), self.config.gate_choices + 1)[..., 1:].float()
-        return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.config.object_tokens)
+        ``held_offsets`` an (object, held object) pair, ``pair_offsets``): the one-hot of the
+        classifier's choice (``gate_logits``), all zero where it chose no object."""
+        return F.one_hot(self.gate_logits(cond).argmax(-1), self.config.gate_choices + 1)[..., 1:].float()
 
     def gate_logits(self, cond: torch.Tensor) -> torch.Tensor:
-        """``hard`` gating's classifier: ``cond (B, cond_dim)`` -> logits ``(B, H, arms, 1 +
+        """The gating classifier: ``cond (B, cond_dim)`` -> logits ``(B, H, arms, 1 +
         gate_choices)`` over "no object" (class 0) and offset g (class g + 1)."""
         return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.config.gate_choices + 1)
 
@@ -173,7 +153,7 @@ class AnchorDiffusionPolicy(nn.Module):
         target units (0 without it): in arm a's end-effector xyz of slot h, ``sum_g gates[h, a, g] *
         offset_g`` (metres: ``centroid_k - ee_a`` per token, with ``held_offsets`` also ``centroid_k -
         centroid_j`` per pair, ``pair_offsets``; an absent object offers 0), for ``gates (B, H, arms,
-        gate_choices)`` (``gates``, or the labels in hard gating's training), scaled as the
+        gate_choices)`` (``gates``, or the labels in training), scaled as the
         relative-target normaliser scales those dims."""
         if gates is None or tokens is None:
             return 0.0
@@ -184,51 +164,19 @@ class AnchorDiffusionPolicy(nn.Module):
             shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a].float(), offsets[:, :, a])
         return shift * self.delta_normalizer.scale.view(h, d).to(shift.dtype)
 
-    def residual_scales(self, gates: torch.Tensor) -> torch.Tensor:
-        """What the diffused residual is divided by, ``(B, H, D)``: ``residual_scale`` in arm a's
-        end-effector x and y (the table plane) of slot h where ``gates (B, H, arms, gate_choices)``
-        pick an object there (the anchor is an object's offset plus a residual of a few
-        centimetres), 1 elsewhere (z keeps its scale: a pre-grasp's 10-15 cm above the centroid
-        would not fit the U-Net's range divided)."""
-        scale = gates.new_ones((gates.shape[0], self.config.horizon, self.config.action_dim), dtype=torch.float32)
-        for a, arm in enumerate(ARMS):
-            picked = gates[:, :, a].float().sum(-1, keepdim=True) > 0  # (B, H, 1)
-            xy = slice(self.layout.ee_xyz(arm).start, self.layout.ee_xyz(arm).start + 2)
-            scale[:, :, xy] = torch.where(picked, self.config.residual_scale, 1.0).expand(-1, -1, 2)
-        return scale
-
-    def residual_frame(self, gates: torch.Tensor, tokens: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(shift, scale)``, each ``(B, H, D)`` in normalised target units, of ``residual_scale``'s
-        diffusion: the clean sample is ``(x0 - shift) / scale`` and decodes as ``shift + scale * z``.
-        ``shift`` is the gated offsets (``anchored_shift``) and, where the residual is scaled, the
-        normalised value of "no move" too, so that a residual of 0 cm is 0 whatever the normaliser's
-        centre; ``state (B, D)`` data units."""
-        scale = self.residual_scales(gates)
-        still = self.to_target(state[:, None, :].expand(-1, self.config.horizon, -1), state)  # "no move", (B, H, D)
-        return self.anchored_shift(gates, tokens) + still * (scale != 1), scale
-
     def compute_loss(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
         """Diffusion training loss of one batch: MSE over all (B, H, action_dim) elements, plus the
         gates' loss (``gate_loss``) weighted by ``gate_supervision``.
 
         The diffusion noise and timesteps are drawn from ``generator`` (CPU) when given, so a
-        seeded run is reproducible across devices. Runs under autocast on CUDA. With ``hard``
-        gating the offsets follow the labelled anchors' objects (teacher forcing)."""
+        seeded run is reproducible across devices. Runs under autocast on CUDA. With anchored
+        offsets the offsets follow the labelled anchors' objects (teacher forcing)."""
         anchors = torch.as_tensor(batch["anchors"], device=self.device, dtype=torch.float32)
         self._check_anchors(anchors)
         state = torch.as_tensor(batch["state"], device=self.device, dtype=torch.float32)
         x0 = self.to_target(anchors, state)
         noise = torch.randn(x0.shape, generator=generator).to(self.device)
         steps = torch.randint(0, self.noise_scheduler.config.num_train_timesteps, (x0.shape[0],), generator=generator).to(self.device)
-        if self.config.residual_scale < 1:  # diffuse the residual around the labelled objects' offsets (hard gating)
-            with autocast(self.device, self.mixed_precision):
-                cond, tokens = self._condition(batch)
-            labels = self.gate_targets(tokens, anchors, state)
-            shift, scale = self.residual_frame(labels, tokens, state)
-            z0 = (x0 - shift) / scale
-            with autocast(self.device, self.mixed_precision):
-                pred = self.unet(self.noise_scheduler.add_noise(z0, noise, steps), steps, cond)
-            return F.mse_loss(pred.float(), z0) + self.config.gate_supervision * self.gate_loss(cond, labels)
         noisy = self.noise_scheduler.add_noise(x0, noise, steps)
         with autocast(self.device, self.mixed_precision):
             cond, tokens = self._condition(batch)
@@ -236,13 +184,9 @@ class AnchorDiffusionPolicy(nn.Module):
         target = x0 if self.config.scheduler.prediction_type == "sample" else noise
         if self.anchor_gates is None or tokens is None:
             return F.mse_loss(pred.float(), target)
-        hard = self.config.anchor_gating == "hard"
-        labels = self.gate_targets(tokens, anchors, state) if hard or self.config.gate_supervision else None
-        gates = labels if hard else self.gates(cond)
-        loss = F.mse_loss(pred.float() + self.anchored_shift(gates, tokens), target)
-        if self.config.gate_supervision:
-            loss = loss + self.config.gate_supervision * self.gate_loss(cond, labels)
-        return loss
+        labels = self.gate_targets(tokens, anchors, state)
+        loss = F.mse_loss(pred.float() + self.anchored_shift(labels, tokens), target)
+        return loss + self.config.gate_supervision * self.gate_loss(cond, labels)
 
     def gate_targets(self, tokens: torch.Tensor, anchors: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """Which offset each labelled anchor takes: ``anchors (B, H, D)``, ``state (B, D)`` data units,
@@ -287,25 +231,20 @@ class AnchorDiffusionPolicy(nn.Module):
 
     def gate_loss(self, cond: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """How far the gates are from the labelled anchors' offsets, ``targets (B, H, arms,
-        gate_choices)`` (``gate_targets``): ``soft``, the MSE of the gates; ``hard``, the cross-entropy
-        of ``gate_logits`` against the class (0: no object, g + 1: offset g)."""
-        if self.config.anchor_gating == "hard":
-            classes = (targets.argmax(-1) + 1) * (targets.sum(-1) > 0)  # (B, H, arms)
-            logits = self.gate_logits(cond)
-            return F.cross_entropy(logits.flatten(0, 2), classes.flatten())
-        return F.mse_loss(self.gates(cond), targets)
+        gate_choices)`` (``gate_targets``): the cross-entropy of ``gate_logits`` against the class
+        (0: no object, g + 1: offset g)."""
+        classes = (targets.argmax(-1) + 1) * (targets.sum(-1) > 0)  # (B, H, arms)
+        return F.cross_entropy(self.gate_logits(cond).flatten(0, 2), classes.flatten())
 
     @torch.no_grad()
     def predict(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None,
-                steps: int | None = None, samples: int = 1, noise_scale: float | None = None) -> torch.Tensor:
+                steps: int | None = None, samples: int = 1) -> torch.Tensor:
         """DDIM sampling of the next anchors. obs: points (B, N, C), state (B, action_dim),
         task_id (B,) -> anchors (B, horizon, action_dim) float32 in data units (unnormalised).
 
         The initial noise comes from ``generator`` (CPU) when given; the DDIM steps are
         deterministic, so the same generator seed gives the same anchors. ``steps``: DDIM steps
-        (None: the config's ``scheduler.num_inference_steps``); ``noise_scale``: the initial noise's
-        scale (None: the config's ``scheduler.init_noise_scale``; 0 starts from the prior's mean, and
-        the prediction no longer depends on ``generator``). ``samples``: anchor sequences
+        (None: the config's ``scheduler.num_inference_steps``). ``samples``: anchor sequences
         drawn per observation (K, one encoder pass); with K > 1 the one returned is their medoid
         (``medoid``), a consensus that drops a stray sample yet stays one of the samples. Call on
         the EMA copy (``ExponentialMovingAverage.averaged_model``) in evaluation."""
@@ -320,12 +259,8 @@ class AnchorDiffusionPolicy(nn.Module):
             tokens = None if tokens is None else tokens.repeat_interleave(samples, 0)
         state = torch.as_tensor(obs["state"], device=self.device, dtype=torch.float32)
         gates = None if self.anchor_gates is None else self.gates(cond)
-        residual = self.config.residual_scale < 1  # the DDIM runs over (x0 - frame) / scale, decoded at the end
-        if residual:
-            frame, scale = self.residual_frame(gates, tokens, state.repeat_interleave(samples, 0))
-        shift = 0.0 if residual else self.anchored_shift(gates, tokens)
+        shift = self.anchored_shift(gates, tokens)
         x = torch.randn((b * samples, self.config.horizon, self.config.action_dim), generator=generator).to(self.device)
-        x = x * (self.config.scheduler.init_noise_scale if noise_scale is None else noise_scale)
         steps = self.config.scheduler.num_inference_steps if steps is None else steps
         if not 1 <= steps <= self.config.scheduler.num_train_timesteps:
             raise ValueError(f"ddim steps: {steps} outside 1..{self.config.scheduler.num_train_timesteps}")
@@ -336,8 +271,6 @@ class AnchorDiffusionPolicy(nn.Module):
             with autocast(self.device, self.mixed_precision):
                 out = self.unet(x, t, cond, film=None if table is None else [f[i] for f in table])
             x = scheduler.step(out.float() + shift, t, x).prev_sample
-        if residual:
-            x = frame + x * scale
         if samples > 1:
             x = medoid(x.view(b, samples, *x.shape[1:]))
         return self.from_target(x, state)

@@ -145,7 +145,7 @@ class EvalWorker:
     """Loads the models once, then runs episodes one at a time."""
 
     def __init__(self, models_dir: str, out_dir: str, cfg_json: str, device: str, ddim_steps: int | None = None,
-                 samples: int = 1, noise_scale: float | None = None, faults: str = ""):
+                 samples: int = 1, faults: str = ""):
         import torch
 
         from anchordp3.stages.evaluate import EvalModels
@@ -153,7 +153,7 @@ class EvalWorker:
         torch.set_num_threads(1)
         self.out = Path(out_dir)
         self.cfg = RunConfig.model_validate_json(cfg_json)
-        self.models = EvalModels(Path(models_dir), device, ddim_steps, samples, noise_scale)
+        self.models = EvalModels(Path(models_dir), device, ddim_steps, samples)
         self.faults = parse_faults(faults)
 
     def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None,
@@ -195,8 +195,6 @@ def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerp
         part["ddim_steps"] = opts.ddim_steps
     if opts.samples != 1:
         part["samples"] = opts.samples
-    if opts.noise_scale is not None:
-        part["noise_scale"] = opts.noise_scale
     return Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([PROTOCOL_MODULE]),  # read, not imported: the driver stays free of the simulator
                        config_hash=config_hash(part), upstream=upstream)
 
@@ -246,7 +244,7 @@ def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts
 
         def new_worker():
             return EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(
-                str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps, opts.samples, opts.noise_scale, faults)
+                str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps, opts.samples, faults)
 
         workers = [new_worker() for _ in range(n)]
         strip_seeds = set(seeds[:opts.strips])

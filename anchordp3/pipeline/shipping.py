@@ -38,18 +38,14 @@ def half_weights(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {k: v.half() if v.dtype == torch.float32 and v.numel() >= HALF_MIN_NUMEL else v for k, v in state.items()}
 
 
-def slim_checkpoint(name: str, path: Path, ddim_steps: int | None = None,
-                    noise_scale: float | None = None) -> tuple[bytes, dict]:
+def slim_checkpoint(name: str, path: Path, ddim_steps: int | None = None) -> tuple[bytes, dict]:
     """``model.pt`` bytes of model ``name`` without what evaluation never reads (the policy's raw
     (non-EMA) weights are its EMA ones, and large weights are stored in float16), and the model's
     config as shipped. ``ddim_steps``: the policy's DDIM steps per decision (its config's
-    ``scheduler.num_inference_steps``; None keeps the ones it was trained and validated with);
-    ``noise_scale``: the scale of the noise its sampling starts from (``scheduler.init_noise_scale``;
-    None keeps its own)."""
+    ``scheduler.num_inference_steps``; None keeps the ones it was trained and validated with)."""
     ckpt = load_checkpoint(path)
-    sampling = {"num_inference_steps": ddim_steps, "init_noise_scale": noise_scale}
-    if name == "policy":
-        ckpt["config"]["scheduler"].update({k: v for k, v in sampling.items() if v is not None})
+    if name == "policy" and ddim_steps is not None:
+        ckpt["config"]["scheduler"]["num_inference_steps"] = ddim_steps
     if "weights_dir" in ckpt:  # checkpoints of older code recorded the resolved (machine) path
         ckpt["weights_dir"] = ckpt.get("config", {}).get("weights_dir")
     for key in ("state_dict", "ema_state_dict"):
@@ -78,12 +74,10 @@ def _source(src: Path, name: str, shipped: bool) -> tuple[Path, Path]:
     return found[0], model_dir(src, name)
 
 
-def ship_models(run_dir: Path, dest: Path | None = None, command: str = "", ddim_steps: int | None = None,
-                noise_scale: float | None = None) -> str:
+def ship_models(run_dir: Path, dest: Path | None = None, command: str = "", ddim_steps: int | None = None) -> str:
     """Copy the three trained models of a run, or of a shipped models folder (to ship them again,
     e.g. with other DDIM steps), into ``dest`` (default: the package's ``pretrained/``); returns a
-    one-line summary. ``ddim_steps``: the shipped policy's DDIM steps per decision, ``noise_scale``
-    the scale of the noise its sampling starts from (None: its own).
+    one-line summary. ``ddim_steps``: the shipped policy's DDIM steps per decision (None: its own).
     Raises FileNotFoundError naming a model that is not trained."""
     run_dir, dest = Path(run_dir), Path(dest) if dest is not None else PRETRAINED_DIR
     tmp = dest.with_name(f".{dest.name}.tmp")
@@ -92,7 +86,7 @@ def ship_models(run_dir: Path, dest: Path | None = None, command: str = "", ddim
     sizes, configs = {}, {}
     for name in MODELS:
         model_pt, folder = _source(run_dir, name, shipped)
-        blob, configs[name] = slim_checkpoint(name, model_pt, ddim_steps, noise_scale)
+        blob, configs[name] = slim_checkpoint(name, model_pt, ddim_steps)
         atomic_write_bytes(tmp / name / "model.pt", blob)
         manifest = read_manifest(folder)  # shipped as JSON, every record inline (a format read_manifest reads)
         atomic_write_bytes(tmp / name / MANIFEST, manifest.model_dump_json(indent=1).encode())
@@ -103,12 +97,12 @@ def ship_models(run_dir: Path, dest: Path | None = None, command: str = "", ddim
     atomic_write_bytes(tmp / RUN_CONFIG_FILE, run_config.read_bytes())
     total = sum(sizes.values())
     sampling = DiffusionSchedulerConfig.model_validate(configs["policy"]["scheduler"])  # defaults for older checkpoints
-    steps, scale = sampling.num_inference_steps, sampling.init_noise_scale
+    steps = sampling.num_inference_steps
     origin = f"From the {'models folder' if shipped else 'run'} `{run_dir.name}`"
     lines = ["# Shipped models", "", origin + (f", made by `{command}`." if command else "."), "",
              "| model | model.pt MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.2f} |" for k, v in sizes.items()] + \
             ["", f"In all {total / 1e6:.2f} MB. `run_config.yaml` is the data config they were trained on. "
-             f"The policy decides with {steps} DDIM steps from initial noise of scale {scale:g}.", ""]
+             f"The policy decides with {steps} DDIM steps.", ""]
     atomic_write_bytes(tmp / SHIPPED_FILE, "\n".join(lines).encode())
     if dest.exists():
         old = dest.with_name(f".{dest.name}.old")

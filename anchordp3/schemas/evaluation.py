@@ -28,7 +28,6 @@ class EvalSettings(BaseModel):
     through: Through = Field(default="pose", description="pose: carry out an anchor through its end-effector poses (IK); joints: through its joint angles (the report).")
     samples: int = Field(default=1, ge=1, le=64, description="Anchor sequences drawn per decision; their medoid is carried out (1: one sample, as the report).")
     ddim_steps: int | None = Field(default=None, ge=1, le=100, description="DDIM steps per decision (default: the policy's own, 10 as DP3; 5 costs half and, on the shipped policy, +0.1 cm first-anchor error).")
-    noise_scale: float | None = Field(default=None, ge=0, le=1, description="Scale of the noise each decision's sampling starts from: 1 a random draw (DP3, the report), 0 the prior's mean, deterministic (default: the policy's own).")
     device: str = Field(default="auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="Torch device of the actors: auto (CUDA when the cluster has GPUs, each actor an equal share), cpu or cuda.")
     first_seed: int | None = Field(default=None, ge=0, description="First unseen evaluation seed (default: max training seed + 1000; it must lie above every training seed).")
     strips: int = Field(default=2, ge=0, description="Episodes per task (the first seeds) that also get a frame strip, strips/<task>/<seed>.png.")

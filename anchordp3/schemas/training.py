@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from itertools import pairwise
-from typing import Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -28,11 +28,36 @@ def model_task_ids(dataset_tasks: Sequence[str]) -> list[int]:
     return [task_id(name) for name in dataset_tasks]
 
 
+RETIRED_IN = "a3146c2"  # the last commit with the code of the retired levers below
+
+
 class _Config(PartialSections):
     """A training config section: unknown fields rejected, frozen, sections given in part keep their
-    own defaults (``schemas.sections``)."""
+    own defaults (``schemas.sections``). ``retired``: fields of levers the ladder did not keep, by
+    the value that meant "off" and the rung that tried them; a config (or a checkpoint's) that
+    gives one at that value reads as before, any other value is refused, naming the rung."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+    retired: ClassVar[dict[str, tuple[Any, str]]] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _retired_fields(cls, data: Any) -> Any:
+        if not isinstance(data, dict) or not any(k in data for k in cls.retired):
+            return data
+        data = dict(data)
+        for key, (off, rung) in cls.retired.items():
+            if key in data and not _same(data.pop(key), off):
+                raise ValueError(f"{key}: retired ({rung}, not kept; its code is at commit {RETIRED_IN}): "
+                                 f"remove it, or set it to {off!r}")
+        return data
+
+
+def _same(value: Any, off: Any) -> bool:
+    """``value`` as read from YAML or a checkpoint equals ``off`` (lists and tuples alike)."""
+    if isinstance(off, tuple):
+        return isinstance(value, (list, tuple)) and list(value) == list(off)
+    return value == off
 
 
 # --------------------------------------------------------------------------------------- optim
@@ -158,11 +183,8 @@ class PointEncoderConfig(_Config):
     hidden_dim: int = Field(default=128, ge=1, description="Width of the per-point MLP.")
     num_layers: int = Field(default=2, ge=1, description="Linear-LayerNorm-ReLU layers in the per-point MLP.")
     out_dim: int = Field(default=192, ge=1, description="Feature length after the final projection.")
-    keypoints: int = Field(
-        default=0, ge=0,
-        description="Soft keypoints beside the max-pool (a spatial softmax over the points): each is the "
-                    "attention-weighted mean of the points' input channels under its own learned per-point score, so "
-                    "object positions reach the policy as coordinates; 0: max-pool only (the report).")
+
+    retired: ClassVar[dict[str, tuple[Any, str]]] = {"keypoints": (0, "soft keypoints beside the max-pool, ladder rung 7")}
 
 
 class StateEncoderConfig(_Config):
@@ -197,15 +219,11 @@ class DiffusionSchedulerConfig(_Config):
 
     num_train_timesteps: int = Field(default=100, ge=1, description="Noise levels used in training.")
     num_inference_steps: int = Field(default=10, ge=1, description="DDIM denoising steps per prediction.")
-    init_noise_scale: float = Field(
-        default=1.0, ge=0, le=1,
-        description="Scale of the Gaussian noise that DDIM sampling starts from: 1, a draw from the prior (DP3 and "
-                    "the report); 0, the prior's mean, so a prediction is the deterministic DDIM path of the "
-                    "observation alone (ladder rung 21: the first anchor 1.87 cm off instead of 2.32, yet 361 of 450 "
-                    "episodes instead of 370, some stalled); in between, a lower temperature. Only sampling reads it.")
     beta_schedule: Literal["squaredcos_cap_v2", "linear", "scaled_linear"] = Field(default="squaredcos_cap_v2", description="Noise schedule.")
     clip_sample: bool = Field(default=True, description="Clip the predicted clean sample to [-1, 1] at each step.")
     prediction_type: Literal["sample", "epsilon"] = Field(default="sample", description="What the U-Net predicts: the clean anchors or the noise.")
+
+    retired: ClassVar[dict[str, tuple[Any, str]]] = {"init_noise_scale": (1.0, "sampling from the prior's mean, ladder rung 21")}
 
     @model_validator(mode="after")
     def _steps(self) -> DiffusionSchedulerConfig:
@@ -244,11 +262,6 @@ class PolicyConfig(_Config):
         description="State and anchor dimensions spanning less than this (rad, m, or unitless) are normalised as if they "
                     "spanned this much, so a nearly constant joint is not stretched thousands of times into noise "
                     "(0: DP3's plain min/max limits).")
-    gripper_points: bool = Field(
-        default=False,
-        description="Give every point, before pooling, its offset from each arm's end effector (6 more channels, "
-                    "metres x 2), so the encoder sees where the objects lie relative to the grippers; off: the point "
-                    "alone, as in the report.")
     object_tokens: int = Field(
         default=0, ge=0, le=8,
         description="Critical-object tokens beside the point encoder: the points the critical channel marks, "
@@ -268,28 +281,20 @@ class PolicyConfig(_Config):
     anchored_offsets: bool = Field(
         default=False,
         description="Anchor the predicted end-effector positions to the objects: the denoiser's clean sample gets, in "
-                    "each arm's end-effector xyz of each horizon slot, a learned mix (gates from the condition, zero at "
-                    "start) of the object tokens' offsets from that arm's end effector, so 'pre-grasp = object "
-                    "centroid + offset' is one gate away (needs object_tokens > 0, relative targets and 'sample' "
-                    "prediction); off: the U-Net alone, as in the report.")
+                    "each arm's end-effector xyz of each horizon slot, the offset from that arm's end effector of the "
+                    "object token a classifier picks there (or none; gate_supervision), so 'pre-grasp = object "
+                    "centroid + offset' is one choice away (needs object_tokens > 0, relative targets, 'sample' "
+                    "prediction and gate_supervision > 0); off: the U-Net alone, as in the report.")
     gate_supervision: float = Field(
         default=0.0, ge=0,
-        description="Weight of an auxiliary loss that teaches the anchored offsets' gates which object each anchor "
-                    "belongs to: the MSE (soft anchor_gating; cross-entropy when 'hard') between the gates and 1 for the "
-                    "token whose centroid lies nearest the labelled end-effector position when within gate_radius, 0 "
-                    "otherwise (models.objects.nearest_token_gates); "
-                    "0: the gates learn from the diffusion loss alone (needs anchored_offsets).")
-    anchor_gating: Literal["soft", "hard"] = Field(
-        default="soft",
-        description="How the anchored offsets pick an object (with anchored_offsets): 'soft', each gate a linear "
-                    "function of the condition, mixed continuously; 'hard', a classifier per (slot, arm) over 'no "
-                    "object' or one of the tokens, trained by cross-entropy on the labelled anchors' nearest token "
-                    "(gate_radius; weight gate_supervision) and one-hot at use: in training the offsets follow the "
-                    "label (teacher forcing), in prediction the classifier's argmax, so an anchor is never shifted "
-                    "halfway to an object.")
+        description="Weight of the anchored offsets' classifier loss (needs anchored_offsets, > 0): a classifier per "
+                    "(slot, arm) picks 'no object' or one of the tokens, trained by cross-entropy on the labelled "
+                    "anchor's nearest token within gate_radius (models.objects.nearest_token_gates), one-hot at use: "
+                    "in training the offsets follow the label (teacher forcing), in prediction the classifier's "
+                    "argmax, so an anchor is never shifted halfway to an object (rung 15).")
     held_offsets: bool = Field(
         default=False,
-        description="With 'hard' anchor_gating, the classifier may also pick 'object k relative to the object the "
+        description="With anchored_offsets, the classifier may also pick 'object k relative to the object the "
                     "arm holds' (a token within models.objects.HELD_RADIUS of a closed gripper): its offset is k's "
                     "centroid minus the held object's, so a place anchor is 'target + offset - where the object sits "
                     "in the hand', as the expert computes it; off: every anchor relative to one object's centroid "
@@ -302,25 +307,30 @@ class PolicyConfig(_Config):
                     "none within gate_radius: relative to the state. Off: by the object nearest the anchor's end "
                     "effector, which for a carried object is mostly the held one, so a place followed the held "
                     "object's centroid, blind to the target (rungs 18-23; traced in ladder rung 25).")
-    residual_scale: float = Field(
-        default=1.0, gt=0, le=1,
-        description="With 'hard' anchor_gating, below 1: the diffusion runs over the anchors minus the chosen "
-                    "objects' offsets, and where an object is chosen (that slot's and arm's end-effector x and y) "
-                    "the residual is divided by this, so it fills the U-Net's range and the U-Net's error shrinks with "
-                    "it (the relative-target normaliser maps 50-70 cm of moves to [-1, 1]: a centimetre is 0.03); "
-                    "1: the U-Net's output is added to the offsets at the moves' scale (rung 20; ladder rung 22: "
-                    "0.25 brought the grasp descent 0.4-0.7 cm closer, yet 362 of 450 episodes against 370).")
     stay_radius: float = Field(
         default=0.0, ge=0,
         description="Metres: a labelled anchor whose end effector lies within this distance of the current one is "
                     "'in place' (a gripper closing or opening where it stands) and its gate target is 'no object', so "
                     "it is predicted relative to the state rather than to an object's centroid, whose error (about a "
                     "centimetre) it would otherwise inherit; 0: every anchor by an object is relative to it (rung 18; "
-                    "needs anchor_gating 'hard' when > 0).")
+                    "needs anchored_offsets when > 0).")
     gate_radius: float = Field(
         default=0.15, gt=0,
         description="Metres: an anchor further than this from every object token's centroid belongs to no object "
                     "(its gates' target is 0); used with gate_supervision > 0.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _gating(cls, data: Any) -> Any:
+        """``anchor_gating`` of configs and checkpoints made before it was retired: 'hard' with
+        anchored offsets and 'soft' without them (where it meant nothing) read as today."""
+        if not isinstance(data, dict) or "anchor_gating" not in data:
+            return data
+        data = dict(data)
+        if data.pop("anchor_gating") != "hard" and data.get("anchored_offsets"):
+            raise ValueError(f"anchor_gating: 'soft' retired (soft gating of the anchored offsets, ladder rungs 9-14, not "
+                             f"kept; its code is at commit {RETIRED_IN}): anchored offsets are gated hard (rung 15)")
+        return data
 
     @model_validator(mode="after")
     def _dims(self) -> PolicyConfig:
@@ -333,19 +343,20 @@ class PolicyConfig(_Config):
             raise ValueError("object_orientation: needs object_tokens > 0")
         if self.token_z_weight != 1 and not self.object_tokens:
             raise ValueError("token_z_weight: needs object_tokens > 0")
-        if self.gate_supervision and not self.anchored_offsets:
-            raise ValueError("gate_supervision: needs anchored_offsets")
-        if self.anchor_gating == "hard" and not (self.anchored_offsets and self.gate_supervision):
-            raise ValueError("anchor_gating: 'hard' needs anchored_offsets and gate_supervision > 0 (the classifier's loss weight)")
-        if self.held_offsets and self.anchor_gating != "hard":
-            raise ValueError("held_offsets: needs anchor_gating 'hard'")
+        if bool(self.gate_supervision) != self.anchored_offsets:
+            raise ValueError("gate_supervision: > 0 exactly when anchored_offsets (the weight of its classifier's loss)")
+        if self.held_offsets and not self.anchored_offsets:
+            raise ValueError("held_offsets: needs anchored_offsets")
         if self.held_destination and not self.held_offsets:
             raise ValueError("held_destination: needs held_offsets")
-        if self.residual_scale < 1 and self.anchor_gating != "hard":
-            raise ValueError("residual_scale: below 1 needs anchor_gating 'hard'")
-        if self.stay_radius and self.anchor_gating != "hard":
-            raise ValueError("stay_radius: needs anchor_gating 'hard'")
+        if self.stay_radius and not self.anchored_offsets:
+            raise ValueError("stay_radius: needs anchored_offsets")
         return self
+
+    retired: ClassVar[dict[str, tuple[Any, str]]] = {
+        "gripper_points": (False, "each point's offset from the grippers, ladder rungs 5-7"),
+        "residual_scale": (1.0, "the residual diffused at a finer scale, ladder rung 22"),
+    }
 
     @property
     def gate_choices(self) -> int:
@@ -372,15 +383,10 @@ class PolicyTrainingConfig(_Config):
                     "call (a policy alone on a run without one is refused, not trained on the labels).",
     )
     val_predict_samples: int = Field(default=64, ge=0, description="Validation samples (evenly spread over the split) denoised with DDIM (EMA weights) to measure the anchor error; 0: skip.")
-    augment_translation: tuple[float, float, float] = Field(
-        default=(0.0, 0.0, 0.0),
-        description="Move each training sample's whole scene (cloud, end-effector positions of state and labels; joints "
-                    "unchanged) by a translation uniform in +-this per axis, metres (0: no augmentation, the report).")
-    augment_state_noise: float = Field(
-        default=0.0, ge=0,
-        description="Std (metres) of Gaussian noise added to the state's end-effector positions of each training "
-                    "sample, its labels unchanged: the policy learns to reach the same anchor from a little off the "
-                    "path (0: none, the report).")
+    retired: ClassVar[dict[str, tuple[Any, str]]] = {
+        "augment_translation": ((0.0, 0.0, 0.0), "whole-scene translation augmentation, ladder rungs 2b, 6 and 10"),
+        "augment_state_noise": (0.0, "gripper jitter, ladder rung 10b"),
+    }
     val_decision_samples: int = Field(default=256, ge=0, description="Validation decision states (rest frames, evenly spread) whose first predicted anchor is scored in cm at the gripper and rad per joint; 0: skip.")
 
 

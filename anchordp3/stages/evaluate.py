@@ -102,12 +102,11 @@ class EvalRecord:
 
 class EvalModels:
     """The three trained models of a models folder (``<run>/models``, or shipped ones), loaded once
-    per process (EMA policy weights); ``ddim_steps`` overrides the policy's DDIM steps per decision
-    and ``noise_scale`` the scale of the noise its sampling starts from; ``samples`` anchor
-    sequences are drawn per decision and their medoid carried out (1: one)."""
+    per process (EMA policy weights); ``ddim_steps`` overrides the policy's DDIM steps per decision;
+    ``samples`` anchor sequences are drawn per decision and their medoid carried out (1: one)."""
 
     def __init__(self, models_dir: Path, device: str | torch.device = "cpu", ddim_steps: int | None = None,
-                 samples: int = 1, noise_scale: float | None = None):
+                 samples: int = 1):
         d = Path(models_dir)
         for name in ("segmenter", "classifier", "policy"):
             if not (d / name / "model.pt").is_file():
@@ -119,7 +118,6 @@ class EvalModels:
         self.policy.unet.freeze()  # evaluation never changes the weights
         self.ddim_steps = ddim_steps  # None: the policy's own
         self.samples = samples
-        self.noise_scale = noise_scale  # None: the policy's own
 
     def classify(self, text: str) -> int:
         """The model task id the instruction names."""
@@ -134,8 +132,7 @@ class EvalModels:
                "state": torch.from_numpy(np.asarray(state, dtype=np.float32))[None].to(self.device),
                "task_id": torch.tensor([task], dtype=torch.long, device=self.device)}
         gen = torch.Generator().manual_seed(noise_seed)
-        return self.policy.predict(obs, generator=gen, steps=self.ddim_steps, samples=self.samples,
-                                   noise_scale=self.noise_scale)[0].cpu().numpy()
+        return self.policy.predict(obs, generator=gen, steps=self.ddim_steps, samples=self.samples)[0].cpu().numpy()
 
 
 def frames_dict(obs: Observation) -> dict[str, np.ndarray]:

@@ -28,7 +28,6 @@ import torch
 from anchordp3.dataset.reader import ShardedDataset
 from anchordp3.dataset.torch_data import SplitDataset, collate_samples
 from anchordp3.models.device import needs_grad_scaler, seed_everything
-from anchordp3.models.augment import jitter_grippers, random_translation, translate_scene
 from anchordp3.models.ema import ExponentialMovingAverage
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
@@ -154,22 +153,8 @@ class PolicyJob(TrainingJob):
         return train_batches(self.train_ds, self.cfg.optim.batch_size, self.seed, start_step, self.loop.loader_workers,
                              pin_memory=self.device.type == "cuda")
 
-    def augmented(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """A training batch with the whole scene moved by a random translation per sample
-        (``augment_translation``) and the state's grippers jittered (``augment_state_noise``); see
-        ``models.augment``. Unchanged when both are off."""
-        extent, noise = self.cfg.augment_translation, self.cfg.augment_state_noise
-        layout = self.model.layout
-        if any(extent):
-            delta = random_translation(len(obs["state"]), extent, self.generator).to(self.device)
-            points, state, anchors = translate_scene(obs["points"], obs["state"], obs["anchors"], delta, layout)
-            obs = {**obs, "points": points, "state": state, "anchors": anchors}
-        if noise:
-            obs = {**obs, "state": jitter_grippers(obs["state"], noise, layout, self.generator)}
-        return obs
-
     def train_step(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
-        loss = self.model.compute_loss(self.augmented(self.observation(batch)), generator=self.generator)
+        loss = self.model.compute_loss(self.observation(batch), generator=self.generator)
         optimizer_step(loss, self.optimizer, self.schedule, self.scaler, self.params, self.cfg.optim.grad_clip_norm)
         decay = self.ema.step(self.model)
         return {"loss": float(loss.detach()), "lr": self.schedule.get_last_lr()[0], "ema_decay": decay}
@@ -209,7 +194,7 @@ class PolicyJob(TrainingJob):
         ``first_cm[/task]`` the gripper position error (mean over samples of the worse arm),
         centimetres; ``first_rad[/task]`` the mean absolute arm-joint error, radians per joint; with
         anchored offsets, ``first_gate[/task]`` the share whose first gates choose the labelled
-        anchor's object (``AnchorDiffusionPolicy.first_gate_hits``; soft gates rounded)."""
+        anchor's object (``AnchorDiffusionPolicy.first_gate_hits``)."""
         picks = self.decision_indices()
         if not picks:
             return {}

@@ -186,19 +186,23 @@ def test_the_policy_reads_object_orientation_only_with_tokens() -> None:
         TINY.model_validate({**TINY.model_dump(), "object_orientation": True})
 
 
-ANCHORED = TINY.model_copy(update={"object_tokens": 2, "anchored_offsets": True})
+ANCHORED = TINY.model_copy(update={"object_tokens": 2, "anchored_offsets": True, "gate_supervision": 1.0, "gate_radius": 0.15})
 
 
-def test_anchored_offsets_add_the_gated_object_offsets_to_end_effector_positions_only() -> None:
+def test_anchored_offsets_add_the_chosen_object_offsets_to_end_effector_positions_only() -> None:
     torch.manual_seed(0)
     policy = AnchorDiffusionPolicy(ANCHORED)
     points, state, truth = scene()
     batch = {**samples(1), "points": points, "state": state}
     policy.set_normalizers(stats_of(batch))
     cond, tokens = policy.encode_observation(batch), object_tokens(points, state, LAYOUT, 2)
-    assert policy.anchored_shift(policy.gates(cond), tokens).abs().max() == 0  # zero gates at the start: the plain policy
+    choice = policy.anchor_gates[-1].bias.view(8, len(ARMS), 3)  # per (slot, arm): none, object 0, object 1
     with torch.no_grad():
-        policy.anchor_gates.bias.view(8, len(ARMS), 2)[0, 0, 1] = 1.0  # slot 0, left arm, the small object
+        choice.zero_()
+        policy.anchor_gates[-1].weight.zero_()
+        choice[..., 0] = 10.0  # no object anywhere: the plain policy
+        assert policy.anchored_shift(policy.gates(cond), tokens).abs().max() == 0
+        choice[0, 0, 2] = 20.0  # slot 0, left arm, the small object
     shift = policy.anchored_shift(policy.gates(cond), tokens) / policy.delta_normalizer.scale.view(8, 32)  # data units
     left = LAYOUT.ee_xyz("left")
     assert (shift[0, 0, left] - (truth[1] - state[0, left])).abs().max() < 0.01
@@ -245,20 +249,16 @@ def fitted(config, train: dict[str, torch.Tensor], steps: int) -> AnchorDiffusio
     return policy
 
 
-HARD = ANCHORED.model_copy(update={"anchor_gating": "hard", "gate_supervision": 1.0, "gate_radius": 0.15})
-
-
 def test_anchored_offsets_find_the_pre_grasp_in_scenes_not_trained_on() -> None:
     train, test = moved_scenes(range(16)), moved_scenes(range(100, 108))
     errors = {}
-    for name, config in (("tokens", TINY.model_copy(update={"object_tokens": 2})), ("anchored", ANCHORED), ("hard", HARD)):
+    for name, config in (("tokens", TINY.model_copy(update={"object_tokens": 2})), ("anchored", ANCHORED)):
         policy = fitted(config, train, 300)
         pred = policy.predict(test, generator=torch.Generator().manual_seed(1))
         left = LAYOUT.ee_xyz("left")
         errors[name] = float((pred[:, 0, left] - test["anchors"][:, 0, left]).norm(dim=-1).mean())
     assert errors["anchored"] < 0.03, errors  # metres: within 3 cm of the pre-grasp on unseen scenes
     assert errors["anchored"] < 0.5 * errors["tokens"], errors
-    assert errors["hard"] < 0.5 * errors["tokens"], errors
 
 
 def test_gate_targets_name_the_nearest_present_object_within_the_radius() -> None:
@@ -274,24 +274,11 @@ def test_gate_targets_name_the_nearest_present_object_within_the_radius() -> Non
     assert nearest_token_gates(positions[:1].view(1, 1, 1, 3), absent, radius=0.1).sum() == 0
 
 
-def test_supervised_gates_learn_which_object_each_anchor_lies_by() -> None:
+def test_the_gates_choose_one_object_or_none_and_learn_which() -> None:
     train, test = moved_scenes(range(16)), moved_scenes(range(100, 108))
-    misses = {}
-    for weight in (0.0, 1.0):
-        policy = fitted(ANCHORED.model_copy(update={"gate_supervision": weight, "gate_radius": 0.15}), train, 150)
-        with torch.no_grad():
-            cond, tokens = policy._condition(test)
-            gates = policy.gates(cond)[:, :, 0]  # the left arm: 10 cm above the small object in every slot
-        misses[weight] = float((gates - torch.tensor([0.0, 1.0])).abs().max())
-    assert misses[1.0] < 0.2, misses
-    assert misses[0.0] > 0.5, misses
-
-
-def test_hard_gates_choose_one_object_or_none_and_learn_which() -> None:
-    train, test = moved_scenes(range(16)), moved_scenes(range(100, 108))
-    fresh = AnchorDiffusionPolicy(HARD)
+    fresh = AnchorDiffusionPolicy(ANCHORED)
     fresh.set_normalizers(stats_of(train))
-    policy = fitted(HARD, train, 150)
+    policy = fitted(ANCHORED, train, 150)
     with torch.no_grad():
         for model in (fresh, policy):
             gates = model.gates(model._condition(test)[0])
@@ -304,12 +291,12 @@ def test_hard_gates_choose_one_object_or_none_and_learn_which() -> None:
     assert AnchorDiffusionPolicy(TINY).first_gate_hits(test) is None  # no anchored offsets: nothing to log
 
 
-def test_hard_gating_trains_its_offsets_on_the_labelled_objects() -> None:
+def test_anchored_offsets_train_on_the_labelled_objects() -> None:
     """In training the shift follows the labels (teacher forcing), not the untrained classifier's
     choice: the loss with the labels' shift equals ``compute_loss``'s diffusion part."""
     train = moved_scenes(range(4))
     torch.manual_seed(0)
-    policy = AnchorDiffusionPolicy(HARD.model_copy(update={"gate_supervision": 1e-12}))
+    policy = AnchorDiffusionPolicy(ANCHORED.model_copy(update={"gate_supervision": 1e-12}))
     policy.set_normalizers(stats_of(train))
     with torch.no_grad():
         policy.anchor_gates[-1].bias.view(8, len(ARMS), 3)[:, 0] = torch.tensor([10.0, 0.0, 0.0])  # predicts "none"
@@ -326,12 +313,16 @@ def test_hard_gating_trains_its_offsets_on_the_labelled_objects() -> None:
     assert abs(float(loss) - float(expected)) < 1e-5
 
 
-def test_hard_gating_needs_its_classifier_loss() -> None:
-    with pytest.raises(ValidationError, match="anchor_gating"):
-        ANCHORED.model_validate({**ANCHORED.model_dump(), "anchor_gating": "hard"})
+def test_anchored_offsets_need_their_classifier_loss_and_soft_gating_is_retired() -> None:
+    with pytest.raises(ValidationError, match="gate_supervision"):
+        ANCHORED.model_validate({**ANCHORED.model_dump(), "gate_supervision": 0.0})
+    with pytest.raises(ValidationError, match="anchor_gating: 'soft' retired"):
+        ANCHORED.model_validate({**ANCHORED.model_dump(), "anchor_gating": "soft"})
+    assert ANCHORED.model_validate({**ANCHORED.model_dump(), "anchor_gating": "hard"}) == ANCHORED  # as checkpoints have it
+    assert TINY.model_validate({**TINY.model_dump(), "anchor_gating": "soft"}) == TINY  # meant nothing without offsets
 
 
-HELD = HARD.model_copy(update={"held_offsets": True})
+HELD = ANCHORED.model_copy(update={"held_offsets": True})
 
 
 def held_scenes(seeds: range) -> dict[str, torch.Tensor]:
@@ -416,7 +407,7 @@ def test_held_destination_labels_a_move_away_from_every_other_object_by_none() -
 
 def test_held_destination_needs_held_offsets() -> None:
     with pytest.raises(ValidationError, match="held_destination"):
-        HARD.model_validate({**HARD.model_dump(), "held_destination": True})
+        ANCHORED.model_validate({**ANCHORED.model_dump(), "held_destination": True})
 
 
 def first_left_errors(configs: dict, train: dict[str, torch.Tensor], test: dict[str, torch.Tensor],
@@ -435,7 +426,7 @@ def first_left_errors(configs: dict, train: dict[str, torch.Tensor], test: dict[
 def test_held_offsets_place_where_the_object_sits_in_the_hand() -> None:
     """The place that follows from the in-hand offset: on unseen scenes, anchoring it to the held
     object beats anchoring it to the target alone."""
-    errors = first_left_errors({"target": HARD, "held": HELD}, held_scenes(range(16)), held_scenes(range(100, 108)))
+    errors = first_left_errors({"target": ANCHORED, "held": HELD}, held_scenes(range(16)), held_scenes(range(100, 108)))
     assert errors["held"] < 0.01, errors  # metres
     assert errors["held"] < 0.5 * errors["target"], errors
 
@@ -473,7 +464,7 @@ def test_an_anchor_in_place_is_labelled_relative_to_the_state_not_to_an_object()
     assert by_object[0, 0, 0].tolist() == small and in_place[0, 0, 0].sum() == 0  # the close: by no object
     assert in_place[0, 1:, 0].tolist() == [small] * 7  # the lift moves 5 cm: still by the small object
     with pytest.raises(ValidationError, match="stay_radius"):
-        ANCHORED.model_validate({**ANCHORED.model_dump(), "stay_radius": 0.01})
+        TINY.model_validate({**TINY.model_dump(), "stay_radius": 0.01})
 
 
 def test_a_close_in_place_stays_in_place_when_labelled_relative_to_the_state() -> None:
@@ -482,24 +473,3 @@ def test_a_close_in_place_stays_in_place_when_labelled_relative_to_the_state() -
     errors = first_left_errors({"object": HELD, "state": STAY}, in_place_scenes(range(16)), in_place_scenes(range(100, 108)))
     assert errors["state"] < 0.005, errors  # metres
     assert errors["state"] < 0.5 * errors["object"], errors
-
-
-def test_a_residual_diffused_at_a_finer_scale_decodes_to_the_offsets_plus_it() -> None:
-    """With residual_scale the U-Net's clean sample is (target - offsets) / scale in the gated
-    end-effector x, y: decoding multiplies back and adds the offsets, elsewhere nothing changes."""
-    policy = AnchorDiffusionPolicy(STAY.model_copy(update={"residual_scale": 0.25}))
-    gates = torch.zeros(1, 8, len(ARMS), 4)
-    gates[0, 0, 0, 3] = 1.0  # slot 0, left arm: an object
-    scale = policy.residual_scales(gates)[0]
-    left = LAYOUT.ee_xyz("left")
-    assert scale[0, left].tolist() == [0.25, 0.25, 1.0] and scale[1:].eq(1).all() and scale[0, LAYOUT.ee_xyz("right")].eq(1).all()
-    assert (scale == 1).sum() == scale.numel() - 2
-    with pytest.raises(ValidationError, match="residual_scale"):
-        ANCHORED.model_validate({**ANCHORED.model_dump(), "residual_scale": 0.5})
-
-
-def test_a_finer_residual_scale_places_the_in_hand_object_more_precisely() -> None:
-    """The place of held_scenes, learnt at the moves' scale and at a quarter of it."""
-    errors = first_left_errors({"coarse": HELD, "fine": HELD.model_copy(update={"residual_scale": 0.25})},
-                               held_scenes(range(16)), held_scenes(range(100, 108)), axes=2)
-    assert errors["fine"] < errors["coarse"], errors

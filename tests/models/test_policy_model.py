@@ -6,15 +6,15 @@ import io
 
 import pytest
 import torch
+from pydantic import ValidationError
 import torch.nn.functional as F
 
 from anchordp3.models.ema import ExponentialMovingAverage
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
-from anchordp3.models.encoders import soft_keypoints
 from anchordp3.models.kernels import reference_kernels
 from anchordp3.models.unet1d import ConditionalUnet1D, SequenceConv1d, SequenceConvTranspose1d
-from anchordp3.models.policy import GRIPPER_OFFSET_SCALE, AnchorDiffusionPolicy, gripper_offsets, medoid
+from anchordp3.models.policy import AnchorDiffusionPolicy, medoid
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import (
     OptimizerConfig,
@@ -170,15 +170,6 @@ def test_fewer_ddim_steps_can_be_asked_for_at_decision_time() -> None:
         policy.predict(obs, steps=0)
 
 
-def test_sampling_from_the_priors_mean_is_deterministic_and_configurable() -> None:
-    policy, obs = fitted_policy(2)
-    draws = [policy.predict(obs, generator=torch.Generator().manual_seed(s), noise_scale=0.0) for s in (0, 1)]
-    assert torch.equal(draws[0], draws[1])  # the noise seed no longer matters
-    assert not torch.equal(draws[0], policy.predict(obs, generator=torch.Generator().manual_seed(0)))  # the config's 1
-    policy.config = policy.config.model_copy(update={"scheduler": policy.config.scheduler.model_copy(update={"init_noise_scale": 0.0})})
-    assert torch.equal(policy.predict(obs, generator=torch.Generator().manual_seed(5)), draws[0])
-
-
 def test_the_medoid_is_the_sample_nearest_the_others_and_ignores_a_stray_one() -> None:
     base = torch.zeros(2, 1, 1)
     rows = torch.stack([torch.cat([base + 0.0, base + 0.1, base + 0.3, base + 9.0, base + 0.2]),  # the stray pulls the mean to 1.92
@@ -203,38 +194,23 @@ def test_several_samples_per_decision_return_the_medoid_of_the_single_samples_wi
         policy.predict(obs, samples=0)
 
 
-def test_soft_keypoints_are_weighted_means_of_the_cloud() -> None:
-    points = torch.tensor([[[0.0, 0.0, 0.0, 1.0], [1.0, 2.0, 3.0, 0.0]]])
-    scores = torch.tensor([[[0.0, 50.0], [0.0, -50.0]]])  # keypoint 0: both points alike; 1: the first point
-    torch.testing.assert_close(soft_keypoints(scores, points), torch.tensor([[0.5, 1.0, 1.5, 0.5, 0.0, 0.0, 0.0, 1.0]]))
-    policy = AnchorDiffusionPolicy(TINY.model_copy(update={"point_encoder": TINY.point_encoder.model_copy(update={"keypoints": 4})}))
-    batch = samples(3)
-    policy.set_normalizers(stats_of(batch))
-    assert policy.encode_observation(batch).shape == (3, TINY.cond_dim)
-    loss = policy.compute_loss(batch)
-    loss.backward()
-    assert policy.point_encoder.encoders[batch["task_id"][0]].keypoint_scores.weight.grad.abs().sum() > 0
+def test_retired_levers_read_as_before_when_off_and_are_refused_when_on() -> None:
+    """Configs and checkpoints made while the ladder's unkept levers existed: a lever at its "off"
+    value reads as today's config, any other value is one error naming the rung."""
+    from anchordp3.schemas.training import PolicyTrainingConfig
 
-
-def test_gripper_points_see_the_cloud_from_each_end_effector() -> None:
-    layout = StateLayout()
-    batch = samples(2, n=5)
-    offsets = gripper_offsets(batch["points"], batch["state"], layout)
-    assert offsets.shape == (2, 5, 6)
-    for k, arm in enumerate(ARMS):
-        want = (batch["points"][..., :3] - batch["state"][:, None, layout.ee_xyz(arm)]) * GRIPPER_OFFSET_SCALE
-        torch.testing.assert_close(offsets[..., 3 * k:3 * k + 3], want)
-    # the encoder's input grows by 6 channels; the observation keeps its 12
-    policy = AnchorDiffusionPolicy(TINY.model_copy(update={"gripper_points": True}))
-    assert policy.point_encoder.encoders[0].per_point[0].in_features == 18
-    policy.set_normalizers(stats_of(batch))
-    assert policy.encode_observation(batch).shape == (2, TINY.cond_dim)
-    # moving both grippers with the cloud leaves the offsets unchanged
-    moved = {**batch, "points": batch["points"].clone(), "state": batch["state"].clone()}
-    moved["points"][..., :3] += 0.1
-    for arm in ARMS:
-        moved["state"][:, layout.ee_xyz(arm)] += 0.1
-    torch.testing.assert_close(gripper_offsets(moved["points"], moved["state"], layout), offsets)
+    old = {**TINY.model_dump(), "gripper_points": False, "residual_scale": 1.0, "anchor_gating": "soft",
+           "point_encoder": {**TINY.point_encoder.model_dump(), "keypoints": 0},
+           "scheduler": {**TINY.scheduler.model_dump(), "init_noise_scale": 1.0}}
+    assert PolicyConfig.model_validate(old) == TINY
+    for bad, name in (({"gripper_points": True}, "gripper_points"), ({"residual_scale": 0.25}, "residual_scale"),
+                      ({"point_encoder": {**old["point_encoder"], "keypoints": 16}}, "keypoints"),
+                      ({"scheduler": {**old["scheduler"], "init_noise_scale": 0.0}}, "init_noise_scale")):
+        with pytest.raises(ValidationError, match=f"{name}: retired .*rung"):
+            PolicyConfig.model_validate({**old, **bad})
+    assert PolicyTrainingConfig.model_validate({"augment_translation": [0, 0, 0], "augment_state_noise": 0}) == PolicyTrainingConfig()
+    with pytest.raises(ValidationError, match="augment_translation: retired"):
+        PolicyTrainingConfig.model_validate({"augment_translation": [0.05, 0.05, 0.01]})
 
 
 @pytest.mark.parametrize("target", ["absolute", "relative"])
