@@ -23,7 +23,7 @@ import ray
 import anchordp3
 from anchordp3.dataset.files import file_sha256
 from anchordp3.logs import Capture, WorkerRecord, replay, to_file
-from anchordp3.pipeline.actors import FAULTS_ENV, one_line, parse_faults
+from anchordp3.pipeline.actors import FAULTS_ENV, InjectedFault, one_line, parse_faults
 from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.runner import ensure_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_summary
@@ -158,11 +158,14 @@ class EvalWorker:
 
     def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None,
             through: str, attempt: int = 1) -> tuple[dict, tuple[WorkerRecord, ...]]:
-        """One episode: its ``EvalRecord`` as a dict, and what was logged while it ran. An injected
-        crash (``evaluate:<task>/<seed>:n:crash``) ends this process at the episode's second decision."""
+        """One episode: its ``EvalRecord`` as a dict, and what was logged while it ran. Injected faults
+        (``ANCHORDP3_INJECT_FAULTS``): ``evaluate:<task>/<seed>:n`` raises in the episode's first
+        ``n`` attempts, ``...:n:crash`` ends this process at the episode's second decision."""
         from anchordp3.stages.evaluate import evaluate_episode
 
         n, crash = self.faults.get((STAGE, episode_item(task, seed)), (0, False))
+        if attempt <= n and not crash:
+            raise InjectedFault(f"injected fault in evaluate {episode_item(task, seed)} (attempt {attempt})")
         watch = (lambda ep, decision, points, pred: decision == 1 and os._exit(1)) if crash and attempt <= n else None
         path = self.out / strip if strip else None
         with Capture() as cap:
@@ -279,6 +282,18 @@ def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts
                     workers.append(w)
                     submit(w, ep)
                     continue
+                except ray.exceptions.RayTaskError as e:  # the episode raised: retried, then recorded as failed
+                    if attempts[ep] <= EPISODE_RETRIES:
+                        log.warning(f"evaluate: {ep[0]} seed {ep[1]}: {one_line(e)}; retrying (attempt {attempts[ep] + 1})")
+                        submit(w, ep)
+                        continue
+                    cause = e.cause if isinstance(e.cause, BaseException) else e
+                    store.record(ItemRecord(item=episode_item(*ep), status="failed", attempts=attempts[ep],
+                                            reason=type(cause).__name__, detail=one_line(cause)))
+                    log.error(f"evaluate: {ep[0]} seed {ep[1]}: failed in each of {attempts[ep]} attempts: {one_line(cause)}")
+                    if queue:
+                        submit(w, queue.pop(0))
+                    continue
                 replay(logs, f"evaluate {episode_item(*ep)}")
                 rel = f"episodes/{ep[0]}/{ep[1]:06d}.json"
                 atomic_write_bytes(out / rel, json.dumps(rec, indent=1).encode())
@@ -297,7 +312,12 @@ def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts
                 ray.kill(w)
     store.finish(len(todo), complete=all(store.done(episode_item(*ep)) for ep in todo))
     train_seeds = cfg.seed_list
-    records = [{**json.loads((out / store.items[episode_item(*ep)].output).read_text()), "seen": ep[1] in train_seeds} for ep in todo]
+    records = [{**json.loads((out / store.items[episode_item(*ep)].output).read_text()), "seen": ep[1] in train_seeds}
+               for ep in todo if store.done(episode_item(*ep))]
+    errors = [store.items[episode_item(*ep)] for ep in todo if not store.done(episode_item(*ep))]
+    if errors:  # the report covers the episodes that ran; these are named, and the next run tries them again
+        log.error(f"evaluate: {len(errors)} of {len(todo)} episodes failed with an error (not in the report; run again "
+                  f"to retry them): " + "; ".join(f"{r.item}: {r.reason}: {r.detail}" for r in errors[:5]))
     store.close()
     write_reports(out, records, cfg, opts)
     return records

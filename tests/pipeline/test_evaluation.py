@@ -183,6 +183,25 @@ def test_an_episode_whose_worker_is_killed_mid_episode_starts_again_and_ends_as_
     assert m.counts.done == len(clean) and m.complete
 
 
+def test_an_episode_that_raises_is_retried_then_recorded_as_failed_and_the_others_complete(trained_run, tmp_path, monkeypatch):
+    from anchordp3.pipeline.actors import FAULTS_ENV
+
+    opts = dict(tasks=("place_mouse",), seeds="1500,1501,1502", workers=1, max_decisions=1, strips=0)
+    clean = run_evaluation(trained_run, EvalOptions(out=tmp_path / "clean", **opts))
+    monkeypatch.setenv(FAULTS_ENV, "evaluate:place_mouse/001500:1,evaluate:place_mouse/001501:9")  # once; always
+    with Capture() as cap:
+        got = run_evaluation(trained_run, EvalOptions(out=tmp_path / "faulty", **opts))
+    drop = lambda rs: [{k: v for k, v in r.items() if k != "seconds"} for r in rs]  # noqa: E731
+    assert drop(got) == drop([r for r in clean if r["seed"] != 1501])  # 1500 retried to the same record; 1501 left out
+    m = read_manifest(tmp_path / "faulty")
+    failed = m.items["place_mouse/001501"]
+    assert failed.status == "failed" and failed.reason == "InjectedFault" and failed.attempts == 3 and not m.complete
+    assert any("1 of 3 episodes failed with an error" in r.message for r in cap.records)
+    monkeypatch.delenv(FAULTS_ENV)
+    again = run_evaluation(trained_run, EvalOptions(out=tmp_path / "faulty", **opts))  # a rerun tries it again
+    assert drop(again) == drop(clean) and read_manifest(tmp_path / "faulty").complete
+
+
 def test_shipped_models_are_small_and_decide_as_the_run_s_own(trained_run, tmp_path):
     from anchordp3.pipeline.shipping import SHIPPED_FILE, ship_models
 
