@@ -129,18 +129,29 @@ def product_status(run_dir: Path) -> list[StageStatus]:
     run_dir = check_run_dir(run_dir)
     dataset = stage_dir(run_dir, "write") / INFO_FILE
     now = {"dataset": file_sha256(dataset) if dataset.is_file() else None}
-    out = []
     for name in MODEL_NAMES:
-        d = run_dir / "models" / name
-        model = d / "model.pt"
+        model = run_dir / "models" / name / "model.pt"
         now[name] = file_sha256(model) if model.is_file() else None
-        out.append(_product_row(f"train {name}", d, lambda fp, name=name: [
-            f"upstream {k}" for k, v in fp.upstream.items() if k in now and v not in (now[k], (now[k] or "")[:16], "ground_truth")]))
-    for d in sorted(p for p in run_dir.glob("eval*") if p.is_dir() and has_manifest(p)):
-        own = d.name == "eval"  # the run's own models; other folders may hold any models' evaluation
-        out.append(_product_row(f"{EVAL_STAGE} ({d.name})", d, lambda fp, own=own: [
-            f"upstream {k}" for k, v in fp.upstream.items() if own and now.get(k) and v != now[k][:16]]))
+    out = []
+    for label, d in product_folders(run_dir, all_models=True):
+        if label.startswith("train "):
+            out.append(_product_row(label, d, lambda fp: [
+                f"upstream {k}" for k, v in fp.upstream.items() if k in now and v not in (now[k], (now[k] or "")[:16], "ground_truth")]))
+        else:
+            own = d.name == "eval"  # the run's own models; other folders may hold any models' evaluation
+            out.append(_product_row(label, d, lambda fp, own=own: [
+                f"upstream {k}" for k, v in fp.upstream.items() if own and now.get(k) and v != now[k][:16]]))
     return out
+
+
+def product_folders(run_dir: Path, all_models: bool = False) -> list[tuple[str, Path]]:
+    """``(label, folder)`` of each trained model (``train <name>``, ``models/<name>``; with
+    ``all_models`` also those not trained) and each evaluation folder (``evaluate (<folder>)``:
+    ``eval``, ``eval-*``) of a run directory."""
+    run_dir = Path(run_dir)
+    models = [(f"train {n}", run_dir / "models" / n) for n in MODEL_NAMES]
+    evals = [(f"{EVAL_STAGE} ({d.name})", d) for d in sorted(run_dir.glob("eval*")) if d.is_dir() and has_manifest(d)]
+    return [(label, d) for label, d in models if all_models or has_manifest(d)] + evals
 
 
 def _product_row(stage: str, d: Path, changes) -> StageStatus:

@@ -17,7 +17,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from anchordp3.dataset.files import file_sha256, tree_checksum
-from anchordp3.pipeline.inspect import check_run_dir, run_config, run_status
+from anchordp3.pipeline.inspect import check_run_dir, product_folders, run_config, run_status
 from anchordp3.pipeline.lock import RunLock
 from anchordp3.pipeline.graph import CONFIG_FILE
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
@@ -65,8 +65,12 @@ class RunVerifyReport(BaseModel):
         if self.ok:
             lines.append(f"verified {self.checked} outputs in {self.run_dir}: all good")
         else:
+            data = len(data_problems(self.problems))
+            redo = ["`anchordp3 verify --repair` redoes the data's"] if data else []
+            if data < len(self.problems):
+                redo.append("`anchordp3 train NAME --force` a model's, `anchordp3 eval --force` an evaluation's")
             lines.append(f"{len(self.problems)} of {self.checked} outputs in {self.run_dir} are missing or corrupt; "
-                         "`anchordp3 verify --repair` redoes them")
+                         + "; ".join(redo))
         return "\n".join(lines)
 
 
@@ -101,7 +105,8 @@ def _check_item(run_dir: Path, stage: str, rec: ItemRecord) -> tuple[int, list[P
 
 
 def verify_run(run_dir: Path) -> RunVerifyReport:
-    """Re-hash the output of every done item of every data stage of ``run_dir``."""
+    """Re-hash the output of every done item of every data stage of ``run_dir``, and of its
+    trained models and evaluations (``inspect.product_folders``)."""
     run_dir = check_run_dir(run_dir)
     manifests = {s: read_manifest(d) if (d := stage_dir(run_dir, s)).is_dir() else None for s in DATA_STAGES}
     if all(m is None for m in manifests.values()):
@@ -116,7 +121,19 @@ def verify_run(run_dir: Path) -> RunVerifyReport:
             n, ps = _check_item(run_dir, s, rec)
             checked += n
             problems += ps
+    for label, d in product_folders(run_dir):
+        for rec in read_manifest(d).items.values():
+            if rec.status == "done" and rec.output is not None and rec.checksum:
+                checked += 1
+                if bad := check_output(d / rec.output, rec.checksum):
+                    problems.append(Problem(stage=label, item=rec.item, path=str(d / rec.output), kind=bad[0], detail=bad[1]))
     return RunVerifyReport(run_dir=str(run_dir), checked=checked, problems=problems)
+
+
+def data_problems(problems: list[Problem]) -> list[Problem]:
+    """The problems of the data stages (what ``--repair`` redoes; a model or an evaluation is
+    redone by ``train --force`` or ``eval --force``)."""
+    return [p for p in problems if p.stage in DATA_STAGES]
 
 
 def items_to_redo(problems: list[Problem]) -> dict[str, list[str]]:
@@ -160,7 +177,7 @@ def repair_run(run_dir: Path, address: str | None = None) -> tuple[RunVerifyRepo
     """Verify ``run_dir``; when something is broken, forget those items and resume the run so
     exactly they are redone; verify again. Returns the reports before and after."""
     before = verify_run(run_dir)
-    if before.ok:
+    if not data_problems(before.problems):
         return before, before
     cfg = run_config(run_dir)
     if cfg is None:
@@ -169,7 +186,7 @@ def repair_run(run_dir: Path, address: str | None = None) -> tuple[RunVerifyRepo
     if stale:
         raise ValueError(f"{run_dir}: stage(s) {', '.join(stale)} were made with another config or code version than "
                          f"its {CONFIG_FILE}; repairing would mix outputs (rerun with --force instead)")
-    redo = forget_broken(run_dir, before.problems)
+    redo = forget_broken(run_dir, data_problems(before.problems))
     log.info("redoing " + "; ".join(f"{s}: {', '.join(items)}" for s, items in redo.items()))
     run_pipeline(cfg, Path(run_dir), RunOptions(address=address))
     return before, verify_run(run_dir)

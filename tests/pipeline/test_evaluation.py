@@ -202,6 +202,25 @@ def test_an_episode_that_raises_is_retried_then_recorded_as_failed_and_the_other
     assert drop(again) == drop(clean) and read_manifest(tmp_path / "faulty").complete
 
 
+def test_verify_checks_the_run_s_models_and_evaluations_too(trained_run, tmp_path):
+    from anchordp3.pipeline.verify import repair_run, verify_run
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    for d in run.glob("eval*"):
+        shutil.rmtree(d)
+    run_evaluation(run, EvalOptions(seeds="1500", workers=1, max_decisions=1, strips=0))
+    assert verify_run(run).ok
+    (run / "models" / "policy" / "model.pt").write_bytes(b"not a model")
+    episode = next((run / "eval" / "episodes").rglob("*.json"))
+    episode.unlink()
+    report = verify_run(run)
+    assert sorted((p.stage, p.kind) for p in report.problems) == [("evaluate (eval)", "missing"), ("train policy", "corrupt")]
+    assert "`anchordp3 train NAME --force`" in report.text() and "--repair" not in report.text()
+    before, after = repair_run(run)  # no data to redo: nothing runs, the problems stay named
+    assert before == after and len(after.problems) == 2
+
+
 def test_shipped_models_are_small_and_decide_as_the_run_s_own(trained_run, tmp_path):
     from anchordp3.pipeline.shipping import SHIPPED_FILE, ship_models
 
