@@ -120,15 +120,15 @@ def cli_errors(fn=None, *, folders: tuple[str, ...] = (), files: tuple[str, ...]
     return wrapper
 
 
-def flags_from(model: type[BaseModel], *, skip: tuple[str, ...] = ()):
-    """Decorator: the command takes one ``--flag`` per field of ``model`` (not in ``skip``), with
+def flags_from(model: type[BaseModel]):
+    """Decorator: the command takes one ``--flag`` per field of ``model``, with
     the field's default and its description as help, and receives them validated as one ``model``
     instance in its parameter ``options``. The config is the one source of the flags; a bad value
     is a one-line error naming the flag."""
 
     def decorate(fn):
         own = [p for name, p in call_signature(fn).parameters.items() if name != "options"]
-        fields = {name: f for name, f in model.model_fields.items() if name not in skip}
+        fields = model.model_fields
         params = [Parameter(name, Parameter.KEYWORD_ONLY, annotation=_flag_type(f.annotation),
                                     default=typer.Option(None if f.default is None else f.default, f"--{name.replace('_', '-')}", help=f.description))
                   for name, f in fields.items()]
@@ -137,7 +137,7 @@ def flags_from(model: type[BaseModel], *, skip: tuple[str, ...] = ()):
         def wrapper(**kwargs):
             values = {name: kwargs.pop(name) for name in fields}
             try:
-                options = model(**{k: v for k, v in values.items() if v is not None or fields[k].default is None})
+                options = model(**{k: v for k, v in values.items() if v is not None})  # None: the field's default
             except ValidationError as e:
                 err = e.errors()[0]
                 flag = f"--{str(err['loc'][0]).replace('_', '-')}" if err["loc"] else model.__name__

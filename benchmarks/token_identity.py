@@ -60,9 +60,9 @@ def object_positions(world, task, physx_row: np.ndarray) -> tuple[list[str], np.
     return names, np.array(centres)
 
 
-def episode_matches(cfg, rec, run: Path, k: int | None, z_weight: float) -> tuple[list[tuple[int, ...]], list[str], np.ndarray]:
+def episode_matches(cfg, rec, run: Path, k: int | None, z_weight: float) -> tuple[list[tuple[int, ...]], list[str]]:
     """Per featurised frame (expert frames only, in step order), the object index each token is
-    matched to (-1: an absent token); the objects' names; which frames are expert frames."""
+    matched to (-1: an absent token); and the objects' names."""
     feats = load_features(stage_dir(run, "features") / features_file(rec.task, rec.seed))
     arrays = load_episode(stage_dir(run, "rollout"), rec)
     world, task = build(rec.task, rec.seed, cfg.world(), render=True)  # markers (a target spot) exist only with visuals
@@ -79,7 +79,7 @@ def episode_matches(cfg, rec, run: Path, k: int | None, z_weight: float) -> tupl
         d = np.linalg.norm(centroids[i, :, None, :2].numpy() - where[None, :, :2], axis=-1)  # (k, O), table plane
         out.append(tuple(int(np.argmin(d[j])) if present[i, j] else -1 for j in range(k)))
     order = np.argsort(feats["t"], kind="stable")
-    return [out[i] for i in order if expert[i]], names, expert
+    return [out[i] for i in order if expert[i]], names
 
 
 def main() -> int:
@@ -100,7 +100,7 @@ def main() -> int:
         firsts = Counter()
         objects = []
         for rec in (r for r in records if r.task == task):
-            matches, objects, _ = episode_matches(cfg, rec, args.run, args.tokens, args.z_weight)
+            matches, objects = episode_matches(cfg, rec, args.run, args.tokens, args.z_weight)
             for m in matches:
                 split += len({o for o in m if o >= 0}) < len(objects)
             churn += sum(a != b for a, b in zip(matches, matches[1:]))

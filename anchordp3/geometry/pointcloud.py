@@ -61,11 +61,7 @@ def backproject(
     u, v = u.astype(np.float64), v.astype(np.float64)
     axes = [((u * ray2world[a, 0] + v * ray2world[a, 1] + ray2world[a, 2]) * d + cam2world[a, 3]).astype(np.float32) for a in range(3)]
     if box is not None:
-        lo, hi = np.asarray(box[0]), np.asarray(box[1])
-        keep = (axes[0] >= lo[0]) & (axes[0] <= hi[0])  # crop_box's test, column by column
-        for a in (1, 2):
-            keep &= (axes[a] >= lo[a]) & (axes[a] <= hi[a])
-        kept = np.flatnonzero(keep)
+        kept = np.flatnonzero(inside_box(axes, *box))
         axes, flat = [x.take(kept) for x in axes], flat.take(kept)
     points = np.stack(axes, axis=1)
 
@@ -108,10 +104,16 @@ def crop_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     Returns: (M,) bool.
     """
     points = np.asarray(points)
+    return inside_box([points[:, a] for a in range(3)], lo, hi)
+
+
+def inside_box(columns: Sequence[np.ndarray], lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``crop_box`` on the points' coordinates given as three (M,) columns (x, y, z), bounds
+    inclusive: per column, ~3x faster than over (M, 3) then all(). Returns: (M,) bool."""
     lo, hi = np.asarray(lo), np.asarray(hi)
-    keep = (points[:, 0] >= lo[0]) & (points[:, 0] <= hi[0])  # per column: ~3x faster than over (M, 3) then all()
+    keep = (columns[0] >= lo[0]) & (columns[0] <= hi[0])
     for axis in (1, 2):
-        keep &= (points[:, axis] >= lo[axis]) & (points[:, axis] <= hi[axis])
+        keep &= (columns[axis] >= lo[axis]) & (columns[axis] <= hi[axis])
     return keep
 
 

@@ -41,7 +41,7 @@ STAGE = "evaluate"
 LOG_FILE = "eval.log"  # the evaluation's messages, its workers' included, appended per invocation
 SEED_OFFSET = 1000
 MODEL_NAMES = ("segmenter", "classifier", "policy")
-EPISODE_RETRIES = 2  # an episode whose worker dies starts again on a new one, at most this many times
+EPISODE_RETRIES = 2  # an episode whose worker dies (on a new worker) or that raises is tried again at most this many times
 PROTOCOL_MODULE = "anchordp3.stages.evaluate"  # the decision loop and how a prediction is carried out
 
 

@@ -128,19 +128,26 @@ def product_status(run_dir: Path) -> list[StageStatus]:
     ``train``'s and ``eval``'s to tell: they depend on the settings they are given."""
     run_dir = check_run_dir(run_dir)
     dataset = stage_dir(run_dir, "write") / INFO_FILE
-    now = {"dataset": file_sha256(dataset) if dataset.is_file() else None}
-    for name in MODEL_NAMES:
+    now = {"dataset": file_sha256(dataset) if dataset.is_file() else None}  # what training records as its upstream
+    for name in MODEL_NAMES:  # the files as they are now, whatever replaced them
         model = run_dir / "models" / name / "model.pt"
         now[name] = file_sha256(model) if model.is_file() else None
     out = []
     for label, d in product_folders(run_dir, all_models=True):
-        if label.startswith("train "):
-            out.append(_product_row(label, d, lambda fp: [
-                f"upstream {k}" for k, v in fp.upstream.items() if k in now and v not in (now[k], (now[k] or "")[:16], "ground_truth")]))
-        else:
-            own = d.name == "eval"  # the run's own models; other folders may hold any models' evaluation
-            out.append(_product_row(label, d, lambda fp, own=own: [
-                f"upstream {k}" for k, v in fp.upstream.items() if own and now.get(k) and v != now[k][:16]]))
+        m = read_summary(d) if d.is_dir() else None
+        folder = d.relative_to(run_dir).as_posix()
+        if m is None:
+            out.append(StageStatus(stage=label, folder=folder, ran=False))
+            continue
+        # upstream digests are whole checksums (training) or their first 16 digits (evaluation);
+        # another folder's evaluation may be of any models, so only ``eval`` is compared
+        checked = label.startswith("train ") or d.name == "eval"
+        changed = [f"upstream {k}" for k, v in m.fingerprint.upstream.items()
+                   if checked and now.get(k) and v != "ground_truth" and not now[k].startswith(v)]
+        c = m.counts
+        out.append(StageStatus(stage=label, folder=folder, ran=True, done=c.done, failed=c.failed, planned=c.planned,
+                               complete=m.complete, seconds=c.seconds, fingerprint=m.fingerprint.digest(),
+                               stale=True if changed else None, changed=changed))
     return out
 
 
@@ -152,18 +159,6 @@ def product_folders(run_dir: Path, all_models: bool = False) -> list[tuple[str, 
     models = [(f"train {n}", run_dir / "models" / n) for n in MODEL_NAMES]
     evals = [(f"{EVAL_STAGE} ({d.name})", d) for d in sorted(run_dir.glob("eval*")) if d.is_dir() and has_manifest(d)]
     return [(label, d) for label, d in models if all_models or has_manifest(d)] + evals
-
-
-def _product_row(stage: str, d: Path, changes) -> StageStatus:
-    """The status row of a model or evaluation folder ``d``; ``changes(fingerprint)`` says what changed upstream."""
-    m = read_summary(d) if d.is_dir() else None
-    if m is None:
-        return StageStatus(stage=stage, folder=d.name if stage.startswith(EVAL_STAGE) else f"models/{d.name}", ran=False)
-    changed = changes(m.fingerprint)
-    c = m.counts
-    return StageStatus(stage=stage, folder=d.name if stage.startswith(EVAL_STAGE) else f"models/{d.name}", ran=True,
-                       done=c.done, failed=c.failed, planned=c.planned, complete=m.complete, seconds=c.seconds,
-                       fingerprint=m.fingerprint.digest(), stale=True if changed else None, changed=changed)
 
 
 def status_table(statuses: list[StageStatus]) -> str:

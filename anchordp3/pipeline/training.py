@@ -199,8 +199,7 @@ def _preflight(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: 
         fp = _fingerprint_of(run_dir, name, cfg)
         if stored is not None and stored.fingerprint != fp:
             if not force:
-                raise ValueError(f"{d}: trained with a different {_what_changed(stored.fingerprint, fp)}; pass --force to "
-                                 "retrain it, or the settings it was trained with to keep it")
+                raise _stale(d, stored.fingerprint, fp)
             retrained.add(name)
         elif stored is None or not stored.complete:
             retrained.add(name)
@@ -230,6 +229,12 @@ def _critical_channel(run_dir: Path, cfg: TrainingConfig):
     return CriticalChannel("segmenter", seg[0], seg[1])
 
 
+def _stale(d: Path, old: Fingerprint, new: Fingerprint) -> ValueError:
+    """The refusal of a model folder ``d`` trained under fingerprint ``old`` where ``new`` is wanted."""
+    return ValueError(f"{d}: trained with a different {_what_changed(old, new)}; pass --force to retrain it, "
+                      "or the settings it was trained with to keep it")
+
+
 def _what_changed(old: Fingerprint, new: Fingerprint) -> str:
     words = {"code": "code", "config": "training config"}
     return " and ".join(words.get(c, c.removeprefix("upstream ")) for c in old.changes(new)) or "fingerprint"
@@ -243,11 +248,10 @@ def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDatas
     try:
         store = ManifestStore(d, stage_name(name), fp)
     except StaleStageError:
-        changed = _what_changed(read_manifest(d).fingerprint, fp)
+        stored = read_manifest(d).fingerprint
         if not force:
-            raise ValueError(f"{d}: trained with a different {changed}; pass --force to retrain it, "
-                             "or the settings it was trained with to keep it") from None
-        log.info(f"{name}: {changed} changed; retraining from scratch (--force)")
+            raise _stale(d, stored, fp) from None
+        log.info(f"{name}: {_what_changed(stored, fp)} changed; retraining from scratch (--force)")
         store = ManifestStore(d, stage_name(name), fp, reset=True)
     try:
         if store.done(name):

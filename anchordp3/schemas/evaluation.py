@@ -7,13 +7,12 @@ from ``EvalOptions``'s fields, their help from the descriptions below.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal, get_args
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 DEFAULT_EPISODES = 10  # unseen seeds per task when neither seeds nor episodes are given
 Through = Literal["pose", "joints"]  # how an anchor is carried out: its end-effector poses by IK, or its joints
-EXECUTE_THROUGH: tuple[str, ...] = get_args(Through)
 
 
 class EvalSettings(BaseModel):
