@@ -229,27 +229,28 @@ KEEP_OUTPUTS_HELP = "Keep outputs that only older code made (same config) instea
 def run(
     config: Path = typer.Argument(..., help="Run config (YAML), e.g. configs/demo.yaml."),
     run_dir: Path = typer.Option(..., "--run-dir", help="Run directory (local, or shared by every cluster node)."),
-    stages: str = typer.Option(None, help="Comma-separated data stages to run (default: all)."),
+    stages: str = typer.Option(None, help="Comma-separated stages to run (default: the data stages, then training and evaluation where the config has those sections)."),
     workers: int = typer.Option(None, min=1, help="Actors per stage pool (overrides the config)."),
     address: str = typer.Option(None, help="Ray cluster to join: auto or ray://HOST:PORT (default: $RAY_ADDRESS, else a local Ray)."),
     force: bool = typer.Option(False, "--force", help="Redo the stages a config or code change invalidated."),
     from_stage: str = typer.Option(None, "--from-stage", help="Redo this stage and everything after it."),
     keep_outputs: bool = typer.Option(False, "--keep-outputs", help=KEEP_OUTPUTS_HELP),
 ) -> None:
-    """Run (or resume) the data stages: rollout → anchors → render → features → write."""
-    from anchordp3.pipeline.report import data_summary
+    """Run (or resume) a run: the data stages (rollout → anchors → render → features → write), then
+    the models and their evaluation where the config has `training:` and `evaluation:`."""
+    from anchordp3.pipeline.inspect import run_overview
     from anchordp3.pipeline.runner import run_pipeline
     from anchordp3.schemas.run import load_run_config
 
     cfg = load_run_config(config)
     run_pipeline(cfg, run_dir, _run_options(stages, workers, address, force, from_stage, keep_outputs))
-    typer.echo(data_summary(run_dir))
+    typer.echo(run_overview(run_dir))
 
 
 @app.command()
 @cli_errors(folders=("run_dir",))
 def stage(
-    name: str = typer.Argument(..., help="Data stage: rollout, anchors, render, features or write."),
+    name: str = typer.Argument(..., help="Stage: rollout, anchors, render, features, write, train-segmenter, train-classifier, train-policy, evaluate or evaluate-train."),
     run_dir: Path = typer.Option(..., "--run-dir", help="Run directory holding config.yaml (from an earlier `run`)."),
     config: Path = typer.Option(None, help="Run config (default: the run directory's config.yaml)."),
     workers: int = typer.Option(None, min=1, help="Actors in the pool (overrides the config)."),
@@ -257,17 +258,17 @@ def stage(
     force: bool = typer.Option(False, "--force", help="Redo the stage if a config or code change invalidated it."),
     keep_outputs: bool = typer.Option(False, "--keep-outputs", help=KEEP_OUTPUTS_HELP),
 ) -> None:
-    """Run one data stage alone; its input stage must be complete."""
-    from anchordp3.pipeline.report import data_summary
+    """Run one stage alone; its input stages must be complete."""
+    from anchordp3.pipeline.inspect import run_overview
+    from anchordp3.pipeline.products import GRAPH
     from anchordp3.pipeline.runner import CONFIG_FILE, run_pipeline
-    from anchordp3.pipeline.work import DATA_STAGES
     from anchordp3.schemas.run import load_run_config
 
-    if name not in DATA_STAGES:
-        raise ValueError(f"stage {name!r}: not a data stage; choose from {', '.join(DATA_STAGES)}")
+    if name not in GRAPH.names:
+        raise ValueError(f"stage {name!r}: unknown; choose from {', '.join(GRAPH.names)}")
     cfg = load_run_config(config or run_dir / CONFIG_FILE)
     run_pipeline(cfg, run_dir, _run_options(name, workers, address, force, None, keep_outputs))
-    typer.echo(data_summary(run_dir))
+    typer.echo(run_overview(run_dir))
 
 
 @app.command()
@@ -391,11 +392,12 @@ app.add_typer(train_app, name="train")
 
 
 def _train(models: list[str], run_dir: Path, config: Path | None, preset: str, steps: int | None, device: str | None,
-           force: bool) -> None:
-    from anchordp3.pipeline.training import load_training_config, train_models, training_summary
+           force: bool, keep_outputs: bool) -> None:
+    from anchordp3.pipeline.targets import train_models, training_summary
+    from anchordp3.pipeline.training import load_training_config
 
     cfg = load_training_config(config, preset, steps, device)
-    results = train_models(run_dir, models, cfg, force=force)
+    results = train_models(run_dir, models, cfg, force=force, keep_outputs=keep_outputs)
     typer.echo(training_summary(results))
 
 
@@ -408,8 +410,9 @@ def _train_command(models: list[str], doc: str):
         steps: int = typer.Option(None, "--steps", min=1, help="Optimizer steps of each model (overrides epochs)."),
         device: str = typer.Option(None, "--device", help="auto (CUDA when present), cpu or cuda (overrides the config)."),
         force: bool = typer.Option(False, "--force", help="Retrain a model whose config, code or upstream changed."),
+        keep_outputs: bool = typer.Option(False, "--keep-outputs", help="Keep a model that only older code trained (same settings and data) instead of refusing."),
     ) -> None:
-        _train(models, run_dir, config, preset, steps, device, force)
+        _train(models, run_dir, config, preset, steps, device, force, keep_outputs)
 
     command.__doc__ = doc
     return command
@@ -430,7 +433,8 @@ def eval_(
     options: EvalOptions = None,
 ) -> None:
     """Closed-loop evaluation: success rate per task with 95 % intervals, table, chart, report in <run>/eval (or --out)."""
-    from anchordp3.pipeline.evaluation import evaluation_folder, evaluation_summary, run_evaluation
+    from anchordp3.pipeline.evaluation import evaluation_summary
+    from anchordp3.pipeline.targets import evaluation_folder, run_evaluation
 
     records = run_evaluation(run_dir, options)
     typer.echo(evaluation_summary(records))

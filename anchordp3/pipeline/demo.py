@@ -1,7 +1,8 @@
 """``anchordp3 demo``: the whole system on the embedded tiny default, well under half an hour on
-two CPU cores: the data stages (rollout → anchors → render → features → write) on
-``configs/demo.yaml``, a picture of one rendered frame, the three models trained with
-``configs/demo_training.yaml``, then closed-loop evaluation ending with the success table, and
+two CPU cores: one run of the whole graph on ``configs/demo.yaml`` (the data stages rollout →
+anchors → render → features → write, a picture of one rendered frame once they are done, the
+three models trained with ``configs/demo_training.yaml``, closed-loop evaluation ending with the
+success table), and
 beside it the shipped models (``--models pretrained``, trained by ``configs/recipe.yaml``) on
 unseen seeds of their tasks, so a newcomer sees a policy do the tasks.
 Re-running resumes wherever it stopped.
@@ -17,16 +18,19 @@ from anchordp3.pipeline.evaluation import (
     EVAL_DIR,
     PRETRAINED,
     PRETRAINED_DIR,
+    episode_records,
     evaluation_summary,
-    run_evaluation,
 )
+from anchordp3.pipeline.evaluation import STAGE as EVAL_STAGE
 from anchordp3.pipeline.report import data_summary
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.show import show_frame
-from anchordp3.pipeline.training import MODELS, load_training_config, train_models, training_summary
-from anchordp3.schemas.evaluation import EvalOptions
+from anchordp3.pipeline.store import read_manifest
+from anchordp3.pipeline.targets import Trained, run_evaluation, training_summary
+from anchordp3.pipeline.training import load_training_config, model_status
+from anchordp3.schemas.evaluation import EvalOptions, EvaluationConfig
 from anchordp3.schemas.run import RunConfig, load_run_config
-from anchordp3.schemas.training import TrainingConfig
+from anchordp3.schemas.training import MODELS, TrainingConfig
 
 log = logging.getLogger(__name__)
 
@@ -70,29 +74,41 @@ def demo_config(seeds: str | None = None) -> RunConfig:
     return cfg.model_copy(update={"seeds": seeds}) if seeds else cfg
 
 
+def demo_run_config(cfg: RunConfig, opts: DemoOptions) -> RunConfig:
+    """The demo as one run config: the data run and, as ``opts`` asks, its training and evaluation."""
+    training = (opts.training or load_training_config(DEMO_TRAINING)) if opts.train else None
+    evaluation = EvaluationConfig(episodes=opts.episodes, workers=opts.workers, max_decisions=opts.max_decisions) \
+        if opts.train and opts.evaluate else None
+    return cfg.model_copy(update={"training": training, "evaluation": evaluation})
+
+
 def run_demo(run_dir: Path, cfg: RunConfig, opts: DemoOptions = DemoOptions()) -> Path:
-    """Run the demo into ``run_dir`` (resuming if it exists); returns the evaluation report's path
-    (or the frame picture's when evaluation is off)."""
+    """Run the demo into ``run_dir`` (resuming if it exists): one run of the graph (data, then
+    training and evaluation as ``opts`` asks), then the shipped models on unseen seeds; returns
+    the evaluation report's path (or the frame picture's when evaluation is off)."""
     run_dir = Path(run_dir)
-    log.info("== 1/3 data: rollout → anchors → render → features → write")
-    run_pipeline(cfg, run_dir, RunOptions(address=opts.address))
-    log.info(data_summary(run_dir))
-    png = show_frame(run_dir, run_dir / "frame.png", frame=1)
-    log.info(f"\nA rendered frame, its masks and its labelled cloud: {png}")
-    if not opts.train:
+    png = run_dir / "frame.png"
+    target = demo_run_config(cfg, opts)
+
+    def phase_done(phase: str, seconds: float) -> None:
+        log.info(f"== {phase} done in {seconds:.0f} s")
+        if phase == "data":
+            log.info(data_summary(run_dir))
+            show_frame(run_dir, png, frame=1)
+            log.info(f"\nA rendered frame, its masks and its labelled cloud: {png}")
+
+    log.info("== the run: rollout → anchors → render → features → write"
+             + (" → the segmenter, the instruction classifier, the anchor diffusion policy" if target.training else "")
+             + (" → closed-loop evaluation on held-out seeds and phrasings" if target.evaluation else ""))
+    run_pipeline(target, run_dir, RunOptions(address=opts.address, redo=(EVAL_STAGE,), on_phase=phase_done))
+    if target.training is not None:
+        log.info(training_summary([Trained(n, "done", model_status(run_dir, n).record) for n in MODELS]))
+    if target.evaluation is None:
         return png
-    log.info("\n== 2/3 training: segmenter, instruction classifier, anchor diffusion policy")
-    results = train_models(run_dir, MODELS, opts.training or load_training_config(DEMO_TRAINING))
-    log.info(training_summary(results))
-    if not opts.evaluate:
-        return png
-    log.info("\n== 3/3 closed-loop evaluation on held-out seeds and instruction phrasings")
-    eval_opts = EvalOptions(episodes=opts.episodes, workers=opts.workers, max_decisions=opts.max_decisions, address=opts.address,
-                            force=True)  # the demo's own folder: what it evaluated before gives way
-    records = run_evaluation(run_dir, eval_opts, cfg)
-    log.info("\n" + evaluation_summary(records))
-    report = run_dir / EVAL_DIR / "report.md"
-    log.info(f"\nReport: {report} | chart: {run_dir / EVAL_DIR / 'success.png'} | training curves: {run_dir / 'models'}/*/loss.png")
+    folder = run_dir / EVAL_DIR
+    log.info("\n" + evaluation_summary(episode_records(folder, target, read_manifest(folder).items)))
+    report = folder / "report.md"
+    log.info(f"\nReport: {report} | chart: {folder / 'success.png'} | training curves: {run_dir / 'models'}/*/loss.png")
     if opts.pretrained_episodes and shipped_models_present():
         log.info("\n== and the shipped policy (`--models pretrained`, made by configs/recipe.yaml) on the same kind of unseen seeds")
         shipped = EvalOptions(models=PRETRAINED, episodes=opts.pretrained_episodes, workers=opts.workers, address=opts.address,

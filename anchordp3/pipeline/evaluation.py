@@ -1,11 +1,15 @@
-"""Closed-loop evaluation of a run's trained models: episodes in parallel in Ray actors.
+"""Closed-loop evaluation of a run's trained models: the evaluate stage (an item per task and
+seed, run by the runner in a pool of actors, each loading the models once), its fingerprint,
+seeds and reports.
 
 Seeds are disjoint from every training seed (``max(training seeds) + 1000 + i``) and the
 instructions come from held-out phrasing families. Output under ``<run>/eval/``:
-``records.sqlite`` (the manifest: one record per episode, resumable), ``episodes/<task>/<seed>.json``,
+``records.sqlite`` (the stage manifest: one record per episode, resumable, retried like any
+stage's items), ``episodes/<task>/<seed>.json``,
 ``episodes.parquet`` (the table), ``success.png`` (success rate per task with 95 % Wilson
-intervals), ``strips/<task>/<seed>.png`` (the head camera at each decision of a few episodes)
-and ``report.md``.
+intervals), ``strips/<task>/<seed>.png`` (the head camera at each decision of a few episodes),
+``report.md``, and with ``train_episodes`` the same for training seeds in ``eval/train/``
+(stage ``evaluate-train``).
 """
 
 from __future__ import annotations
@@ -13,35 +17,29 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import ray
-
 import anchordp3
 from anchordp3.dataset.files import file_sha256
-from anchordp3.logs import Capture, WorkerRecord, replay, to_file
-from anchordp3.pipeline.actors import FAULTS_ENV, InjectedFault, one_line, parse_faults
 from anchordp3.pipeline.codehash import code_hash
-from anchordp3.pipeline.runner import ensure_ray
-from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_summary
+from anchordp3.pipeline.graph import BatchContext, BatchItem, StageOutput
+from anchordp3.pipeline.store import StaleStageError, has_manifest, read_summary
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.records import EvalEpisodeInfo
 from anchordp3.schemas.episode import parse_seeds
-from anchordp3.schemas.evaluation import DEFAULT_EPISODES, EvalOptions
+from anchordp3.schemas.evaluation import DEFAULT_EPISODES, EvalOptions, EvaluationConfig
 from anchordp3.schemas.run import RunConfig, config_hash, load_run_config
+from anchordp3.schemas.training import MODELS
 from anchordp3.stages.files import atomic_write_bytes
 
 log = logging.getLogger(__name__)
 
 EVAL_DIR = "eval"
 STAGE = "evaluate"
-LOG_FILE = "eval.log"  # the evaluation's messages, its workers' included, appended per invocation
+TRAIN_STAGE = "evaluate-train"  # the same models on training seeds
+TRAIN_DIR = "train"  # its folder, inside the evaluation's
 SEED_OFFSET = 1000
-MODEL_NAMES = ("segmenter", "classifier", "policy")
-EPISODE_RETRIES = 2  # an episode whose worker dies (on a new worker) or that raises is tried again at most this many times
 PROTOCOL_MODULE = "anchordp3.stages.evaluate"  # the decision loop and how a prediction is carried out
 
 
@@ -62,10 +60,10 @@ def models_folder(run_dir: Path | None, models: str | None) -> Path:
     return Path(run_dir) / "models"
 
 
-def eval_run_config(run_dir: Path | None, models_dir: Path, opts: EvalOptions) -> RunConfig:
+def eval_run_config(run_dir: Path | None, models_dir: Path, target: EvaluationConfig) -> RunConfig:
     """The data config the models were trained on (the run's ``config.yaml``, or the
-    ``run_config.yaml`` shipped beside a models folder), restricted to ``opts.tasks`` and set to
-    ``opts.preset``."""
+    ``run_config.yaml`` shipped beside a models folder) with ``target`` as its ``evaluation``
+    section; tasks the models were not trained on are refused."""
     for path in ([Path(run_dir) / "config.yaml"] if run_dir is not None else []) + [models_dir / RUN_CONFIG_FILE,
                                                                                        models_dir.parent / "config.yaml"]:
         if path.is_file():
@@ -73,20 +71,25 @@ def eval_run_config(run_dir: Path | None, models_dir: Path, opts: EvalOptions) -
             break
     else:
         raise FileNotFoundError(f"{models_dir}: no {RUN_CONFIG_FILE} beside the models and no run config; give --run-dir")
-    update: dict = {}
-    if opts.tasks:
-        unknown = sorted(set(opts.tasks) - set(cfg.tasks))
-        if unknown:
-            raise ValueError(f"--tasks: {unknown} not among the tasks the models were trained on ({cfg.tasks})")
-        update["tasks"] = list(opts.tasks)
-    if opts.preset:
-        update["preset"] = opts.preset
-    return RunConfig.model_validate({**cfg.model_dump(mode="json"), **update}) if update else cfg
+    unknown = sorted(set(target.tasks or ()) - set(cfg.tasks))
+    if unknown:
+        raise ValueError(f"--tasks: {unknown} not among the tasks the models were trained on ({cfg.tasks})")
+    return cfg.model_copy(update={"evaluation": target})
 
 
+def evaluated(cfg: RunConfig) -> RunConfig:
+    """The run config of the evaluation's scenes: the tasks and preset its ``evaluation`` section
+    names (default: the run's)."""
+    ev = cfg.evaluation
+    update: dict = {"evaluation": ev}
+    if ev.tasks:
+        update["tasks"] = list(ev.tasks)
+    if ev.preset:
+        update["preset"] = ev.preset
+    return RunConfig.model_validate({**cfg.model_dump(mode="json"), **update, "evaluation": ev.model_dump(mode="json")})
 
 
-def selected_seeds(cfg: RunConfig, opts: EvalOptions) -> list[int]:
+def selected_seeds(cfg: RunConfig, opts: EvaluationConfig) -> list[int]:
     """The evaluation seeds: ``opts.seeds`` (``train``: the training seeds, the first
     ``opts.episodes`` of them when given), else ``opts.episodes`` seeds disjoint from training.
     An explicit seed list and a different episode count contradict each other: refused."""
@@ -109,17 +112,12 @@ def eval_seeds(cfg: RunConfig, episodes: int, first_seed: int | None = None) -> 
     return [base + i for i in range(episodes)]
 
 
-def actor_device(device: str, workers: int) -> tuple[str, float]:
-    """The torch device of the evaluation actors and the GPUs each reserves: ``auto`` takes CUDA
-    when the Ray cluster has GPUs (shared equally among ``workers``), else the CPU."""
-    if device not in ("auto", "cpu", "cuda"):
-        raise ValueError(f"--device: expected auto, cpu or cuda, got {device!r}")
-    gpus = ray.cluster_resources().get("GPU", 0)
-    if device == "cuda" and gpus <= 0:
-        raise ValueError("--device: cuda asked for, but the Ray cluster has no GPU")
-    if device == "cpu" or gpus <= 0:
-        return "cpu", 0.0
-    return "cuda", min(1.0, gpus / workers)
+def train_target(cfg: RunConfig) -> RunConfig:
+    """The config of the second evaluation (``evaluate-train``): the first ``train_episodes``
+    training seeds, no frame strips."""
+    ev = cfg.evaluation
+    return cfg.model_copy(update={"evaluation": ev.model_copy(update={
+        "seeds": "train", "episodes": ev.train_episodes, "strips": 0, "train_episodes": 0})})
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -140,37 +138,18 @@ def episode_item(task: str, seed: int) -> str:
     return f"{task}/{seed:06d}"
 
 
-@ray.remote
-class EvalWorker:
-    """Loads the models once, then runs episodes one at a time."""
+def episode_key(item: str) -> tuple[str, int]:
+    """``place_mouse/002000`` → ``("place_mouse", 2000)``."""
+    task, seed = item.rsplit("/", 1)
+    return task, int(seed)
 
-    def __init__(self, models_dir: str, out_dir: str, cfg_json: str, device: str, ddim_steps: int | None = None,
-                 samples: int = 1, faults: str = ""):
-        import torch
 
-        from anchordp3.stages.evaluate import EvalModels
-
-        torch.set_num_threads(1)
-        self.out = Path(out_dir)
-        self.cfg = RunConfig.model_validate_json(cfg_json)
-        self.models = EvalModels(Path(models_dir), device, ddim_steps, samples)
-        self.faults = parse_faults(faults)
-
-    def run(self, task: str, seed: int, max_decisions: int | None, strip: str | None,
-            through: str, attempt: int = 1) -> tuple[dict, tuple[WorkerRecord, ...]]:
-        """One episode: its ``EvalRecord`` as a dict, and what was logged while it ran. Injected faults
-        (``ANCHORDP3_INJECT_FAULTS``): ``evaluate:<task>/<seed>:n`` raises in the episode's first
-        ``n`` attempts, ``...:n:crash`` ends this process at the episode's second decision."""
-        from anchordp3.stages.evaluate import evaluate_episode
-
-        n, crash = self.faults.get((STAGE, episode_item(task, seed)), (0, False))
-        if attempt <= n and not crash:
-            raise InjectedFault(f"injected fault in evaluate {episode_item(task, seed)} (attempt {attempt})")
-        watch = (lambda ep, decision, points, pred: decision == 1 and os._exit(1)) if crash and attempt <= n else None
-        path = self.out / strip if strip else None
-        with Capture() as cap:
-            rec = evaluate_episode(task, seed, self.models, self.cfg, max_decisions, path, through, watch).to_dict()
-        return rec, tuple(cap.records)
+# ------------------------------------------------------------------------ the evaluate stage
+def episode_items(cfg: RunConfig) -> list[str]:
+    """The evaluate stage's items: one per task and seed of ``cfg.evaluation``, in that order."""
+    ev = evaluated(cfg)
+    seeds = selected_seeds(ev, ev.evaluation)
+    return [episode_item(t, s) for t in ev.tasks for s in seeds]
 
 
 def check_models(models_dir: Path) -> None:
@@ -178,7 +157,7 @@ def check_models(models_dir: Path) -> None:
     one-line error naming the file here, in the driver, not a traceback from an actor."""
     from anchordp3.stages.training_loop import load_checkpoint
 
-    for name in MODEL_NAMES:
+    for name in MODELS:
         path = Path(models_dir) / name / "model.pt"
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no trained {name}; run `anchordp3 train all --run-dir RUN` first")
@@ -187,13 +166,16 @@ def check_models(models_dir: Path) -> None:
             raise ValueError(f"{path}: not a {name} checkpoint (kind {kind!r})")
 
 
-def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerprint:
-    upstream = {}
+def evaluation_fingerprint(ctx: BatchContext, cfg: RunConfig) -> Fingerprint:
+    """What an evaluation's episodes depend on: the models' checksums, the scenes' world and
+    features, and how decisions are made and carried out (not the seeds: more seeds resume)."""
+    ev = evaluated(cfg)
+    opts = ev.evaluation
+    models_dir = models_folder(ctx.run_dir, opts.models)
     check_models(models_dir)
-    for name in MODEL_NAMES:
-        upstream[name] = file_sha256(Path(models_dir) / name / "model.pt")[:16]
-    part = {"world": cfg.world().model_dump(mode="json"), "features": cfg.features.model_dump(mode="json"),
-            "max_decisions": opts.max_decisions, "through": opts.through, "plan": cfg.anchors.plan, "dense": cfg.anchors.dense.model_dump(mode="json")}
+    upstream = {name: file_sha256(Path(models_dir) / name / "model.pt")[:16] for name in MODELS}
+    part = {"world": ev.world().model_dump(mode="json"), "features": ev.features.model_dump(mode="json"),
+            "max_decisions": opts.max_decisions, "through": opts.through, "plan": ev.anchors.plan, "dense": ev.anchors.dense.model_dump(mode="json")}
     if opts.ddim_steps is not None:  # only when set: evaluations with the policy's own steps keep their fingerprint
         part["ddim_steps"] = opts.ddim_steps
     if opts.samples != 1:
@@ -202,125 +184,86 @@ def _fingerprint(models_dir: Path, cfg: RunConfig, opts: EvalOptions) -> Fingerp
                        config_hash=config_hash(part), upstream=upstream)
 
 
-def run_evaluation(run_dir: Path | None, opts: EvalOptions = EvalOptions(), cfg: RunConfig | None = None) -> list[dict]:
-    """Evaluate (or finish evaluating) the models (``opts.models``, else the run's) on every task
-    (``opts.tasks``, else the config's) and seed (``selected_seeds``); returns the per-episode
-    records (dicts of ``EvalRecord`` with ``seen``: the seed was a training seed) in task, seed
-    order. Output in ``opts.out`` (else ``<run>/eval``)."""
-    models_dir = models_folder(run_dir, opts.models)
-    cfg = cfg or eval_run_config(run_dir, models_dir, opts)
-    out = evaluation_folder(run_dir, opts)
-    fp = _fingerprint(models_dir, cfg, opts)
-    seeds = selected_seeds(cfg, opts)  # before the folder exists: bad seeds create nothing
-    with to_file(out / LOG_FILE):
-        return _evaluate(models_dir, out, fp, cfg, opts, seeds)
+def check_evaluation(ctx: BatchContext, cfg: RunConfig) -> None:
+    """Refused before anything runs: bad seeds, unreadable models, and a folder holding an
+    evaluation of other models, settings or code (unless ``force``). Models this call trains
+    first are checked when the stage starts."""
+    episode_items(cfg)
+    if cfg.evaluation.models is None and any(s.startswith("train-") for s in ctx.stages):
+        return
+    fp = evaluation_fingerprint(ctx, cfg)
+    stored = read_summary(ctx.folder) if ctx.folder.is_dir() and has_manifest(ctx.folder) else None
+    if stored is not None and ctx.refuses(stored.fingerprint.changes(fp)):
+        raise StaleStageError(f"--out: {ctx.folder} holds an evaluation of other models, settings or code "
+                              f"({', '.join(stored.fingerprint.changes(fp))} changed); give another folder, or --force to start over")
 
 
-def evaluation_folder(run_dir: Path | None, opts: EvalOptions) -> Path:
-    """Where an evaluation goes: ``opts.out``, else ``<run>/eval``, else ``runs/eval-<models folder name>``."""
-    if opts.out is not None:
-        return Path(opts.out)
-    if run_dir is not None:
-        return Path(run_dir) / EVAL_DIR
-    return Path("runs") / f"eval-{models_folder(None, opts.models).resolve().name}"
+_MODELS: dict = {}  # (models folder, device, DDIM steps, samples) -> EvalModels: loaded once per worker
 
 
-def _evaluate(models_dir: Path, out: Path, fp: Fingerprint, cfg: RunConfig, opts: EvalOptions, seeds: list[int]) -> list[dict]:
-    try:
-        store = ManifestStore(out, STAGE, fp)
-    except StaleStageError:
-        stored = read_summary(out)
-        changed = ", ".join(stored.fingerprint.changes(fp)) if stored is not None else "fingerprint"
-        if not opts.force:
-            raise StaleStageError(f"--out: {out} holds an evaluation of other models, settings or code ({changed} changed); "
-                                  "give another folder, or --force to start over") from None
-        log.info(f"evaluate: {changed} changed since the last evaluation in {out}; starting over (--force)")
-        store = ManifestStore(out, STAGE, fp, reset=True)
-    todo = [(t, s) for t in cfg.tasks for s in seeds]
-    pending = [ep for ep in todo if not store.done(episode_item(*ep))]
-    log.info(f"evaluate: {len(todo)} episodes ({len(todo) - len(pending)} already done), {opts.workers} workers")
-    if pending:
-        ensure_ray(opts.address)
-        n = max(1, min(opts.workers, len(pending)))
-        device, gpus = actor_device(opts.device, n)
-        faults = os.environ.get(FAULTS_ENV, "")
+def _models(models_dir: Path, device: str, ddim_steps: int | None, samples: int):
+    from anchordp3.stages.evaluate import EvalModels
 
-        def new_worker():
-            return EvalWorker.options(num_cpus=opts.cpus_per_worker, num_gpus=gpus).remote(
-                str(models_dir), str(out), cfg.model_dump_json(), device, opts.ddim_steps, opts.samples, faults)
+    key = (str(models_dir), device, ddim_steps, samples)
+    if key not in _MODELS:
+        import torch
 
-        workers = [new_worker() for _ in range(n)]
-        strip_seeds = set(seeds[:opts.strips])
-        attempts: dict[tuple[str, int], int] = {}
+        torch.set_num_threads(1)
+        _MODELS.clear()
+        _MODELS[key] = EvalModels(Path(models_dir), device, ddim_steps, samples)
+    return _MODELS[key]
 
-        def submit(w, ep):
-            strip = f"strips/{ep[0]}/{ep[1]:06d}.png" if ep[1] in strip_seeds else None
-            attempts[ep] = attempts.get(ep, 0) + 1
-            running[w.run.remote(ep[0], ep[1], opts.max_decisions, strip, opts.through, attempts[ep])] = (w, ep)
 
-        queue = list(pending)
-        running: dict = {}
-        t0 = time.perf_counter()
-        for w in workers:
-            if queue:
-                submit(w, queue.pop(0))
-        finished = 0
-        try:
-            while running:
-                [ref], _ = ray.wait(list(running), num_returns=1)
-                w, ep = running.pop(ref)
-                try:
-                    rec, logs = ray.get(ref)
-                except ray.exceptions.RayActorError as e:  # the worker died mid-episode (killed, out of memory, node lost)
-                    workers.remove(w)
-                    if attempts[ep] > EPISODE_RETRIES:
-                        raise RuntimeError(f"evaluate {episode_item(*ep)}: its worker died in each of {attempts[ep]} attempts "
-                                           f"({one_line(e)})") from None
-                    log.warning(f"evaluate: {ep[0]} seed {ep[1]}: its worker died ({one_line(e)}); the episode starts "
-                                f"again on a new worker (attempt {attempts[ep] + 1})")
-                    w = new_worker()
-                    workers.append(w)
-                    submit(w, ep)
-                    continue
-                except ray.exceptions.RayTaskError as e:  # the episode raised: retried, then recorded as failed
-                    if attempts[ep] <= EPISODE_RETRIES:
-                        log.warning(f"evaluate: {ep[0]} seed {ep[1]}: {one_line(e)}; retrying (attempt {attempts[ep] + 1})")
-                        submit(w, ep)
-                        continue
-                    cause = e.cause if isinstance(e.cause, BaseException) else e
-                    store.record(ItemRecord(item=episode_item(*ep), status="failed", attempts=attempts[ep],
-                                            reason=type(cause).__name__, detail=one_line(cause)))
-                    log.error(f"evaluate: {ep[0]} seed {ep[1]}: failed in each of {attempts[ep]} attempts: {one_line(cause)}")
-                    if queue:
-                        submit(w, queue.pop(0))
-                    continue
-                replay(logs, f"evaluate {episode_item(*ep)}")
-                rel = f"episodes/{ep[0]}/{ep[1]:06d}.json"
-                atomic_write_bytes(out / rel, json.dumps(rec, indent=1).encode())
-                store.record(ItemRecord(item=episode_item(*ep), status="done", output=rel, checksum=file_sha256(out / rel),
-                                        seconds=rec["seconds"], info=EvalEpisodeInfo(
-                                            success=rec["success"], steps=rec["steps"], decisions=rec["decisions"],
-                                            failure=rec["failure"], unmet=rec.get("unmet", "")).model_dump(mode="json")))
-                finished += 1
-                log.info(f"evaluate: {ep[0]} seed {ep[1]}: {'success' if rec['success'] else rec['failure']} "
-                    f"({rec['steps']} steps, {rec['decisions']} decisions) [{finished}/{len(pending)}, "
-                    f"{time.perf_counter() - t0:.0f} s]")
-                if queue:
-                    submit(w, queue.pop(0))
-        finally:
-            for w in workers:
-                ray.kill(w)
-    store.finish(len(todo), complete=all(store.done(episode_item(*ep)) for ep in todo))
+def actor_device(device: str) -> str:
+    """The torch device of an evaluation worker: ``auto`` takes CUDA when the worker was given a
+    GPU (Ray shows it only the GPUs it reserved), else the CPU."""
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
+
+
+def run_episode(run_dir: Path, cfg: RunConfig, item: BatchItem) -> StageOutput:
+    """One evaluation episode (the evaluate stage's item): its ``EvalRecord`` as
+    ``episodes/<task>/<seed>.json`` in the stage folder, a frame strip for the first ``strips``
+    seeds of each task."""
+    from anchordp3.stages.evaluate import evaluate_episode
+
+    ev = evaluated(cfg)
+    opts = ev.evaluation
+    task, seed = episode_key(item.id)
+    models = _models(models_folder(run_dir, opts.models), actor_device(opts.device), opts.ddim_steps, opts.samples)
+    strip = f"strips/{task}/{seed:06d}.png" if seed in selected_seeds(ev, opts)[:opts.strips] else None
+    rec = evaluate_episode(task, seed, models, ev, opts.max_decisions, item.folder / strip if strip else None, opts.through).to_dict()
+    rel = f"episodes/{task}/{seed:06d}.json"
+    atomic_write_bytes(item.folder / rel, json.dumps(rec, indent=1).encode())
+    log.info(f"{'success' if rec['success'] else rec['failure']} ({rec['steps']} steps, {rec['decisions']} decisions)")
+    return StageOutput(rel, file_sha256(item.folder / rel), EvalEpisodeInfo(
+        success=rec["success"], steps=rec["steps"], decisions=rec["decisions"], failure=rec["failure"], unmet=rec.get("unmet", "")))
+
+
+def episode_records(folder: Path, cfg: RunConfig, records: dict[str, ItemRecord]) -> list[dict]:
+    """The done episodes' ``EvalRecord`` dicts, in item order, each with ``seen`` (the seed was a
+    training seed)."""
     train_seeds = cfg.seed_list
-    records = [{**json.loads((out / store.items[episode_item(*ep)].output).read_text()), "seen": ep[1] in train_seeds}
-               for ep in todo if store.done(episode_item(*ep))]
-    errors = [store.items[episode_item(*ep)] for ep in todo if not store.done(episode_item(*ep))]
-    if errors:  # the report covers the episodes that ran; these are named, and the next run tries them again
-        log.error(f"evaluate: {len(errors)} of {len(todo)} episodes failed with an error (not in the report; run again "
+    out = []
+    for item in episode_items(cfg):
+        rec = records.get(item)
+        if rec is not None and rec.status == "done":
+            out.append({**json.loads((Path(folder) / rec.output).read_text()), "seen": episode_key(item)[1] in train_seeds})
+    return out
+
+
+def report_evaluation(ctx: BatchContext, cfg: RunConfig, records: dict[str, ItemRecord]) -> None:
+    """The evaluation's table, chart and report from the episodes that ran; the ones that failed
+    with an error are named (the next run tries them again)."""
+    items = episode_items(cfg)
+    errors = [r for i in items if (r := records.get(i)) is not None and r.status == "failed"]
+    if errors:
+        log.error(f"evaluate: {len(errors)} of {len(items)} episodes failed with an error (not in the report; run again "
                   f"to retry them): " + "; ".join(f"{r.item}: {r.reason}: {r.detail}" for r in errors[:5]))
-    store.close()
-    write_reports(out, records, cfg, opts)
-    return records
+    write_reports(ctx.folder, episode_records(ctx.folder, cfg, records), evaluated(cfg), cfg.evaluation)
 
 
 def summarize(records: Sequence[dict]) -> list[dict]:

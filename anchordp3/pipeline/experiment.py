@@ -24,10 +24,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from anchordp3.pipeline.phases import PhaseClock
-from anchordp3.pipeline.evaluation import SEED_OFFSET, run_evaluation, summarize, wilson_interval
+from anchordp3.pipeline.evaluation import SEED_OFFSET, episode_key, episode_records, summarize, wilson_interval
+from anchordp3.pipeline.products import stage_folder
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import read_manifest
-from anchordp3.pipeline.training import MODELS, train_models
 from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.episode import SeedSet
 from anchordp3.schemas.experiment import ExperimentConfig
@@ -42,16 +42,11 @@ PHASES_FILE = "phases.json"  # wall seconds per arm and phase, summed over invoc
 REPORTED_RATIO = 14.5  # trajectories per render budget, anchors over dense, in the AnchorDP3 report
 
 
-def _item_key(item: str) -> tuple[str, int]:
-    task, seed = item.rsplit("/", 1)
-    return task, int(seed)
-
-
 def rendered_frames(run_dir: Path) -> dict[tuple[str, int], int]:
     """Frames rendered per ``(task, seed)`` episode of a run (planned frames of rendered episodes)."""
     plans = read_manifest(stage_dir(run_dir, "anchors")).items
     rendered = read_manifest(stage_dir(run_dir, "render")).items
-    return {_item_key(k): plans[k].payload(AnchorsInfo).frames for k, r in rendered.items()
+    return {episode_key(k): plans[k].payload(AnchorsInfo).frames for k, r in rendered.items()
             if r.status == "done" and k in plans and plans[k].status == "done"}
 
 
@@ -59,7 +54,7 @@ def kept_steps(run_dir: Path) -> dict[tuple[str, int], int]:
     """Control steps of each kept (expert-successful) episode of a run."""
     items = read_manifest(stage_dir(run_dir, "rollout")).items
     kept = {k: info for k, r in items.items() if r.status == "done" and (info := r.payload(RolloutInfo)).kept}
-    return {_item_key(k): info.record.steps for k, info in kept.items()}
+    return {episode_key(k): info.record.steps for k, info in kept.items()}
 
 
 def dense_frame_count(steps: int, stride: int) -> int:
@@ -90,28 +85,32 @@ def dense_arm(cfg: RunConfig, n_seeds: int) -> RunConfig:
 
 def run_experiment(out: Path, cfg: ExperimentConfig,
                    address: str | None = None) -> dict:
-    """Run (or resume) both arms into ``out``; returns the results written to ``results.json``."""
+    """Run (or resume) both arms into ``out``, each one run of the whole graph (data, training,
+    evaluation on the same unseen seeds); returns the results written to ``results.json``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     clock = PhaseClock(out / PHASES_FILE, ARMS)
-    timed, seconds = clock.timed, clock.seconds
-    first_seed = cfg.run.seed_list.last + SEED_OFFSET
+    evaluation = cfg.eval.target(first_seed=cfg.run.seed_list.last + SEED_OFFSET)
 
-    runs = {"anchors": cfg.run}
-    timed("anchors", "data", lambda: run_pipeline(cfg.run, out / "anchors", RunOptions(address=address)))
+    def arm(run: RunConfig) -> RunConfig:
+        return run.model_copy(update={"training": cfg.training, "evaluation": evaluation})
+
+    def run_arm(name: str) -> None:
+        run_pipeline(runs[name], out / name, RunOptions(address=address, redo=("evaluate",), on_phase=clock.recorder(name)))
+
+    runs = {"anchors": arm(cfg.run)}
+    run_arm("anchors")
     budget = sum(rendered_frames(out / "anchors").values())
     n = dense_seed_count(cfg.run.tasks, cfg.run.seed_list, kept_steps(out / "anchors"), budget, cfg.run.anchors.dense.frame_stride)
-    runs["dense"] = dense_arm(cfg.run, n)
+    runs["dense"] = arm(dense_arm(cfg.run, n))
     log.info(f"experiment: the anchors arm rendered {budget} frames; the dense arm's plan on {n} seed(s) per task comes nearest")
-    timed("dense", "data", lambda: run_pipeline(runs["dense"], out / "dense", RunOptions(address=address)))
+    run_arm("dense")
 
     records = {}
-    for arm in ARMS:
-        timed(arm, "train", lambda: train_models(out / arm, MODELS, cfg.training))
-        opts = cfg.eval.options(address=address, first_seed=first_seed, force=True)
-        records[arm] = timed(arm, "eval", lambda: run_evaluation(out / arm, opts, runs[arm]))
-
-    results = _results(out, runs, records, seconds)
+    for name in ARMS:
+        folder = stage_folder(out / name, "evaluate")
+        records[name] = episode_records(folder, runs[name], read_manifest(folder).items)
+    results = _results(out, runs, records, clock.seconds)
     atomic_write_bytes(out / "results.json", json.dumps(results, indent=1).encode())
     _chart(out / "comparison.png", results)
     atomic_write_bytes(out / "report.md", experiment_report(results).encode())

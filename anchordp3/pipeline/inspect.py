@@ -17,12 +17,15 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from anchordp3.pipeline.graph import CONFIG_FILE, fingerprints, translate_layout
 from anchordp3.pipeline.store import has_manifest, read_manifest, read_record, read_records, read_stopped, read_summary
+from anchordp3.pipeline.evaluation import STAGE as EVAL_STAGE
+from anchordp3.pipeline.products import GRAPH, stage_folder
 from anchordp3.pipeline.work import DATA_GRAPH, DATA_STAGES, STAGE_DIRS, stage_dir
 from anchordp3.dataset.files import file_sha256
 from anchordp3.schemas.dataset import INFO_FILE
 from anchordp3.schemas.manifest import ItemRecord, StageManifest
 from anchordp3.schemas.records import RolloutInfo
 from anchordp3.schemas.run import RunConfig, load_run_config
+from anchordp3.schemas.training import MODELS
 from anchordp3.viz.table import text_table
 
 SLOWEST = 5
@@ -57,24 +60,25 @@ def check_run_dir(run_dir: Path) -> Path:
 
 
 def stage_name(name: str) -> str:
-    """A data stage by its name or its folder's name (``dataset`` → ``write``); ValueError naming it."""
-    if name in DATA_STAGES:
+    """A stage of the graph by its name or its folder's name (``dataset`` → ``write``,
+    ``models/policy`` → ``train-policy``); ValueError naming it."""
+    if name in GRAPH.names:
         return name
-    by_folder = {d: s for s, d in STAGE_DIRS.items()}
-    if name in by_folder:
-        return by_folder[name]
-    raise ValueError(f"unknown stage {name!r}; choose from {', '.join(DATA_STAGES)}")
+    by_folder = {st.folder: st.name for st in GRAPH.stages}
+    if name.rstrip("/") in by_folder:
+        return by_folder[name.rstrip("/")]
+    raise ValueError(f"unknown stage {name!r}; choose from {', '.join(GRAPH.names)}")
 
 
 def load_manifest(run_dir: Path, stage: str) -> StageManifest:
     """The stage's manifest with every record; ValueError when the stage has not run."""
     load_manifest_summary(run_dir, stage)
-    return read_manifest(stage_dir(run_dir, stage))
+    return read_manifest(stage_folder(run_dir, stage))
 
 
 def load_manifest_summary(run_dir: Path, stage: str) -> StageManifest:
     """The stage's fingerprint and totals (no records); ValueError when the stage has not run."""
-    d = stage_dir(run_dir, stage)
+    d = stage_folder(run_dir, stage)
     m = read_summary(d) if d.is_dir() else None
     if m is None:
         raise ValueError(f"stage {stage}: has not run in {run_dir} (no manifest in {d})")
@@ -116,10 +120,6 @@ def run_status(run_dir: Path) -> list[StageStatus]:
     return out
 
 
-MODEL_NAMES = ("segmenter", "classifier", "policy")  # pipeline.training.MODELS, read without loading torch
-EVAL_STAGE = "evaluate"  # pipeline.evaluation.STAGE, read without loading Ray
-
-
 def product_status(run_dir: Path) -> list[StageStatus]:
     """What was made from a run's data: one ``StageStatus`` per trained model (``models/<name>``)
     and per evaluation folder in the run directory (``eval``, ``eval-*``). A model is stale when
@@ -129,7 +129,7 @@ def product_status(run_dir: Path) -> list[StageStatus]:
     run_dir = check_run_dir(run_dir)
     dataset = stage_dir(run_dir, "write") / INFO_FILE
     now = {"dataset": file_sha256(dataset) if dataset.is_file() else None}  # what training records as its upstream
-    for name in MODEL_NAMES:  # the files as they are now, whatever replaced them
+    for name in MODELS:  # the files as they are now, whatever replaced them
         model = run_dir / "models" / name / "model.pt"
         now[name] = file_sha256(model) if model.is_file() else None
     out = []
@@ -141,7 +141,7 @@ def product_status(run_dir: Path) -> list[StageStatus]:
             continue
         # upstream digests are whole checksums (training) or their first 16 digits (evaluation);
         # another folder's evaluation may be of any models, so only ``eval`` is compared
-        checked = label.startswith("train ") or d.name == "eval"
+        checked = label.startswith("train ") or d.relative_to(run_dir).parts[0] == "eval"
         changed = [f"upstream {k}" for k, v in m.fingerprint.upstream.items()
                    if checked and now.get(k) and v != "ground_truth" and not now[k].startswith(v)]
         c = m.counts
@@ -153,11 +153,14 @@ def product_status(run_dir: Path) -> list[StageStatus]:
 
 def product_folders(run_dir: Path, all_models: bool = False) -> list[tuple[str, Path]]:
     """``(label, folder)`` of each trained model (``train <name>``, ``models/<name>``; with
-    ``all_models`` also those not trained) and each evaluation folder (``evaluate (<folder>)``:
-    ``eval``, ``eval-*``) of a run directory."""
+    ``all_models`` also those not trained) and each evaluation folder of a run directory with a
+    manifest (``evaluate (<folder>)``: the evaluate stages' ``eval``, ``eval/train``, and other
+    evaluations written into the run, ``eval-*``)."""
     run_dir = Path(run_dir)
-    models = [(f"train {n}", run_dir / "models" / n) for n in MODEL_NAMES]
-    evals = [(f"{EVAL_STAGE} ({d.name})", d) for d in sorted(run_dir.glob("eval*")) if d.is_dir() and has_manifest(d)]
+    models = [(f"train {n}", run_dir / "models" / n) for n in MODELS]
+    folders = [run_dir / st.folder for st in GRAPH.batch_stages if st.phase.startswith("eval")]
+    folders += [d for d in sorted(run_dir.glob("eval-*")) if d not in folders]
+    evals = [(f"{EVAL_STAGE} ({d.relative_to(run_dir).as_posix()})", d) for d in folders if d.is_dir() and has_manifest(d)]
     return [(label, d) for label, d in models if all_models or has_manifest(d)] + evals
 
 
@@ -219,16 +222,15 @@ def stage_report(run_dir: Path, stage: str, limit: int = 50) -> str:
     limit: items listed at most (0: all)."""
     run_dir = check_run_dir(run_dir)
     stage = stage_name(stage)
-    d = stage_dir(run_dir, stage)
-    m = read_summary(d) if d.is_dir() else None
-    if m is None:
-        raise ValueError(f"stage {stage}: has not run in {run_dir} (no manifest in {d})")
-    st = next(s for s in run_status(run_dir) if s.stage == stage)
+    d = stage_folder(run_dir, stage)
+    m = load_manifest_summary(run_dir, stage)
+    folder = GRAPH[stage].folder
+    st = next(s for s in (run_status(run_dir) if stage in DATA_STAGES else product_status(run_dir)) if s.folder == folder)
     c = m.counts
     fp = m.fingerprint
-    stale = ("unknown (no config.yaml)" if st.stale is None
+    stale = (("unknown (no config.yaml)" if stage in DATA_STAGES else "current as far as its inputs tell") if st.stale is None
              else (f"STALE: {', '.join(st.changed)} changed" if st.stale else "current"))
-    lines = [f"stage {stage} ({stage_dir(run_dir, stage)}): {'complete' if m.complete else 'incomplete'}",
+    lines = [f"stage {stage} ({d}): {'complete' if m.complete else 'incomplete'}",
              "",
              text_table(["planned", "done", "failed", "compute s", "mean s/item"],
                         [[c.planned, c.done, c.failed, f"{c.seconds:.1f}",
@@ -263,13 +265,13 @@ def item_records(run_dir: Path, item: str, stage: str | None = None) -> dict[str
     if stage is not None:
         stage = stage_name(stage)
         load_manifest_summary(run_dir, stage)
-        rec = read_record(stage_dir(run_dir, stage), item)
+        rec = read_record(stage_folder(run_dir, stage), item)
         if rec is None:
             raise ValueError(f"stage {stage}: no item {item!r} in its manifest")
         return {stage: rec}
     out = {}
-    for s in DATA_STAGES:
-        d = stage_dir(run_dir, s)
+    for s in GRAPH.names:
+        d = stage_folder(run_dir, s)
         rec = read_record(d, item) if has_manifest(d) else None
         if rec is not None:
             out[s] = rec

@@ -32,6 +32,14 @@ class PhaseClock:
         log.info(f"{group}: {phase}")
         t0 = time.perf_counter()
         result = fn()
-        self.seconds.setdefault(group, {})[phase] = self.seconds[group].get(phase, 0.0) + time.perf_counter() - t0
-        atomic_write_bytes(self.path, json.dumps(self.seconds, indent=1).encode())
+        self.add(group, phase, time.perf_counter() - t0)
         return result
+
+    def add(self, group: str, phase: str, seconds: float) -> None:
+        """``seconds`` more spent on ``group``/``phase`` (saved at once)."""
+        self.seconds.setdefault(group, {})[phase] = self.seconds[group].get(phase, 0.0) + seconds
+        atomic_write_bytes(self.path, json.dumps(self.seconds, indent=1).encode())
+
+    def recorder(self, group: str) -> Callable[[str, float], None]:
+        """A runner's ``RunOptions.on_phase`` that adds each phase's time to ``group``."""
+        return lambda phase, seconds: self.add(group, phase, seconds)

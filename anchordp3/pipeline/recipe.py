@@ -1,11 +1,12 @@
 """``anchordp3 experiment recipe``: the best known way to a working policy, in one resumable
-command: the data run, the three models, closed-loop evaluation on unseen seeds (held-out
-instruction phrasings) and again on training seeds.
+command: one run of the whole graph (the data stages, the three models, closed-loop evaluation on
+unseen seeds with held-out instruction phrasings and again on training seeds).
 
 Output under the recipe folder: ``run/`` (an ordinary run directory: ``status``, ``inspect``,
-``show``, ``eval`` work on it), ``eval/`` (unseen seeds) and ``eval-train/`` (training seeds), each
-with its table, chart, frame strips and report; ``phases.json`` (wall seconds per phase, summed
-over invocations), ``results.json`` and ``report.md``.
+``show``, ``eval`` work on it; its ``eval/`` holds the unseen seeds' evaluation and ``eval/train/``
+the training seeds'), each evaluation with its table, chart, frame strips and report;
+``phases.json`` (wall seconds per phase, summed over invocations), ``results.json`` and
+``report.md``.
 """
 
 from __future__ import annotations
@@ -13,16 +14,27 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from anchordp3.pipeline.evaluation import run_evaluation, summarize, wilson_interval
+from anchordp3.pipeline.evaluation import TRAIN_STAGE, episode_records, summarize, train_target, wilson_interval
 from anchordp3.pipeline.phases import PhaseClock
+from anchordp3.pipeline.products import stage_folder
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
-from anchordp3.pipeline.training import MODELS, model_status, train_models
+from anchordp3.pipeline.store import read_manifest
+from anchordp3.pipeline.training import model_status
+from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.recipe import RecipeConfig
 from anchordp3.schemas.records import ModelInfo
+from anchordp3.schemas.run import RunConfig
+from anchordp3.schemas.training import MODELS
 from anchordp3.stages.files import atomic_write_bytes
 
 GROUP = "recipe"
 PHASES_FILE = "phases.json"
+EVALUATIONS = ("evaluate", TRAIN_STAGE)  # their settings may change between invocations: they are redone, not refused
+
+
+def recipe_run_config(cfg: RecipeConfig) -> RunConfig:
+    """The recipe as one run config: the data run with its training and evaluation sections."""
+    return cfg.run.model_copy(update={"training": cfg.training, "evaluation": cfg.eval.target()})
 
 
 def run_recipe(out: Path, cfg: RecipeConfig, address: str | None = None,
@@ -33,26 +45,25 @@ def run_recipe(out: Path, cfg: RecipeConfig, address: str | None = None,
     out.mkdir(parents=True, exist_ok=True)
     run = out / "run"
     clock = PhaseClock(out / PHASES_FILE, (GROUP,))
-    clock.timed(GROUP, "data", lambda: run_pipeline(cfg.run, run, RunOptions(address=address, keep_outputs=keep_outputs)))
-    clock.timed(GROUP, "train", lambda: train_models(run, MODELS, cfg.training))
-    e = cfg.eval
-    unseen = clock.timed(GROUP, "eval", lambda: run_evaluation(run, e.options(out=out / "eval", address=address, force=True), cfg.run))
-    seen: list[dict] = []
-    if e.train_episodes:
-        seeds = ",".join(str(s) for s in cfg.run.seed_list[:e.train_episodes])
-        seen = clock.timed(GROUP, "eval-train", lambda: run_evaluation(
-            run, e.options(seeds=seeds, episodes=None, out=out / "eval-train", strips=0, address=address, force=True), cfg.run))
+    target = recipe_run_config(cfg)
+    run_pipeline(target, run, RunOptions(address=address, keep_outputs=keep_outputs, redo=EVALUATIONS,
+                                         on_phase=clock.recorder(GROUP)))
+    unseen = _records(stage_folder(run, "evaluate"), target)
+    seen = _records(stage_folder(run, TRAIN_STAGE), train_target(target)) if cfg.eval.train_episodes else []
     results = recipe_results(out, cfg, unseen, seen, clock.seconds[GROUP])
     atomic_write_bytes(out / "results.json", json.dumps(results, indent=1).encode())
     atomic_write_bytes(out / "report.md", recipe_report(results).encode())
     return results
 
 
+def _records(folder: Path, cfg: RunConfig) -> list[dict]:
+    return episode_records(folder, cfg, read_manifest(folder).items)
+
+
 def recipe_results(out: Path, cfg: RecipeConfig, unseen: list[dict], seen: list[dict], seconds: dict[str, float]) -> dict:
     """What the recipe made and how well it does: data size, each model's steps, training time
     and final validation metrics, success per task on unseen and on training seeds, wall times."""
     from anchordp3.dataset.reader import open_dataset
-    from anchordp3.pipeline.work import stage_dir
 
     data = open_dataset(stage_dir(out / "run", "write"))
     models = {}
@@ -98,7 +109,7 @@ def recipe_report(results: dict) -> str:
         lines.append(f"| {name} | {m['steps']} | {m['train_seconds']} | {metrics} |")
     lines += ["", "Wall time per phase (seconds, summed over invocations): "
               + ", ".join(f"{k} {v:.0f}" for k, v in results["seconds"].items()) + ".", "",
-              "![success on unseen seeds](eval/success.png)", "",
-              "Reports: [unseen seeds](eval/report.md), [training seeds](eval-train/report.md); "
+              "![success on unseen seeds](run/eval/success.png)", "",
+              "Reports: [unseen seeds](run/eval/report.md), [training seeds](run/eval/train/report.md); "
               "training curves in `run/models/*/loss.png`.", ""]
     return "\n".join(lines)

@@ -1,13 +1,15 @@
 """Running a stage graph as streaming pools of Ray actors, with manifests and resume.
 
 The driver (this module) owns the manifests and decides what runs; actors (``actors.py``) do the
-items. The loop knows no stage by name: it walks the declared graph (``graph.Graph``; the data
-stages of ``work.DATA_GRAPH`` by default). An episode flows through the episode stages
-(rollout → anchors → render → features) as soon as each step is done; a group (a shard) is
-written as soon as every episode it holds is resolved (through every stage, stopped, or failed);
-the group stage's finishing item (the dataset's index and statistics) comes when every group is
-done. Work in flight is bounded per actor, and only IDs, paths and small typed payloads travel
-between processes.
+items. The loop knows no stage by name: it walks the declared graph (``graph.Graph``;
+``products.GRAPH`` by default: the data stages, training, evaluation). An episode flows through
+the episode stages (rollout → anchors → render → features) as soon as each step is done; a group
+(a shard) is written as soon as every episode it holds is resolved (through every stage, stopped,
+or failed); the group stage's finishing item (the dataset's index and statistics) comes when every
+group is done. Then each batch stage (the models, one at a time in the driver; the evaluation's
+episodes, in a pool of actors with the same retries and crash triage) once its inputs are
+complete. Work in flight is bounded per actor, and only IDs, paths and small typed payloads
+travel between processes.
 
 Messages and progress lines go to ``logging`` (``anchordp3.logs``); what a worker logs while it
 does an item comes back with the item's result and is re-emitted here, so the run's log file
@@ -24,6 +26,7 @@ import sqlite3
 import sys
 import time
 from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,11 +37,22 @@ import anchordp3
 from anchordp3.logs import replay, to_file
 from anchordp3.pipeline.actors import FAULTS_ENV, NO_SPACE, ItemResult, StageWorker, one_line
 from anchordp3.pipeline.codehash import code_hash
-from anchordp3.pipeline.graph import CONFIG_FILE, EpisodeItem, Graph, GroupItem, Stage, StageOutput, fingerprints, translate_layout
+from anchordp3.pipeline.graph import (
+    CONFIG_FILE,
+    BatchContext,
+    BatchItem,
+    EpisodeItem,
+    Graph,
+    GroupItem,
+    Stage,
+    StageOutput,
+    fingerprints,
+    translate_layout,
+)
 from anchordp3.pipeline.lock import RunLock
+from anchordp3.pipeline.products import GRAPH
 from anchordp3.pipeline.reaper import watch_local_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_summary
-from anchordp3.pipeline.work import DATA_GRAPH
 from anchordp3.schemas.episode import episode_id
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.run import RunConfig, config_hash
@@ -69,41 +83,44 @@ class NoSpaceLeft(RunAborted):
 class RunOptions:
     """How to run: which stages, how many workers, where, and what to redo."""
 
-    stages: tuple[str, ...] | None = None  # None: every stage of the graph
+    stages: tuple[str, ...] | None = None  # None: the graph's targets for the config (``Graph.targets``)
     workers: int | None = None          # overrides every pool's size
     address: str | None = None          # None: a local Ray; "auto" or "ray://…": join a cluster
     force: bool = False                 # redo stages whose fingerprint changed
+    redo: tuple[str, ...] = ()          # batch stages redone when their fingerprint changed (``force`` for these only)
     keep_outputs: bool = False          # keep outputs that only other code made (same config): adopt them
     from_stage: str | None = None       # redo this stage and everything downstream
     progress_interval: float | None = None  # seconds between progress lines (None: 2 on a terminal, 15 in a log)
     faults: str = field(default_factory=lambda: os.environ.get(FAULTS_ENV, ""))
+    stop_at: dict[str, int] = field(default_factory=dict)  # model name -> step: training stops there, resumable (tests, demos)
+    on_phase: Callable[[str, float], None] | None = None  # told each phase's wall seconds (``Stage.phase``) as it ends
 
 
 
 
-def read_fingerprints(run_dir: Path, graph: Graph = DATA_GRAPH) -> dict[str, Fingerprint]:
+def read_fingerprints(run_dir: Path, graph: Graph = GRAPH) -> dict[str, Fingerprint]:
     """The stored fingerprints of the stages with outputs in ``run_dir``, as written."""
     stored = {}
-    for st in graph.stages:
+    for st in graph.data_stages:
         d = Path(run_dir) / st.folder
         if d.exists() and (m := read_summary(d)) is not None:
             stored[st.name] = m.fingerprint
     return stored
 
 
-def stored_fingerprints(cfg: RunConfig, run_dir: Path, graph: Graph = DATA_GRAPH) -> dict[str, Fingerprint]:
+def stored_fingerprints(cfg: RunConfig, run_dir: Path, graph: Graph = GRAPH) -> dict[str, Fingerprint]:
     """The fingerprints of the stages with outputs in ``run_dir``, in the current layout."""
     return translate_layout(cfg, graph, read_fingerprints(run_dir, graph))
 
 
-def stage_changes(cfg: RunConfig, run_dir: Path, graph: Graph = DATA_GRAPH,
+def stage_changes(cfg: RunConfig, run_dir: Path, graph: Graph = GRAPH,
                   fps: dict[str, Fingerprint] | None = None) -> dict[str, list[str]]:
     """Stages whose stored outputs were made with another fingerprint than ``cfg`` (and this code)
     gives, in pipeline order, each with what changed (``Fingerprint.changes``). ``fps``: those
     fingerprints when already computed (``fingerprints`` hashes the stages' code)."""
     fps = fps or fingerprints(cfg, graph)
     stored = stored_fingerprints(cfg, run_dir, graph)
-    return {s: changed for s in graph.names if s in stored and (changed := stored[s].changes(fps[s]))}
+    return {st.name: changed for st in graph.data_stages if st.name in stored and (changed := stored[st.name].changes(fps[st.name]))}
 
 
 def adoptable(changes: dict[str, list[str]]) -> list[str]:
@@ -187,18 +204,20 @@ class Runner:
     """One invocation of ``anchordp3 run`` on a run directory (use ``run_pipeline``), generic over
     a stage graph (``graph.Graph``; the data stages by default)."""
 
-    def __init__(self, cfg: RunConfig, run_dir: Path, opts: RunOptions, graph: Graph = DATA_GRAPH):
+    def __init__(self, cfg: RunConfig, run_dir: Path, opts: RunOptions, graph: Graph = GRAPH):
         self.cfg, self.run_dir, self.opts, self.graph = cfg, Path(run_dir), opts, graph
-        self.names = graph.names
+        self.names = tuple(st.name for st in graph.data_stages)  # the data stages; batch stages run after them
         self.chain = graph.episode_stages
         self.group = graph.group_stage
-        self.enabled = [s for s in self.names if s in (opts.stages or self.names)]
+        wanted = opts.stages or graph.targets(cfg)
+        self.enabled = [s for s in self.names if s in wanted]
+        self.batches = [st for st in graph.batch_stages if st.name in wanted]
         self.fps = fingerprints(cfg, graph)
         self.episodes = [(t, s) for t in cfg.tasks for s in cfg.seed_list]
         self.plan = self.group.group(cfg, self.episodes) if self.group else []
         self.group_of = {(m.task, m.seed): k for k, members in enumerate(self.plan) for m in members}
         self.halted: dict[str, set[str]] = {st.name: set() for st in self.chain}  # done, but the episode stops here
-        self.stats = _Stats(self.names)
+        self.stats = _Stats(graph.names)
         self._actor_options: dict[str, dict] = {}
         self.interval = opts.progress_interval if opts.progress_interval is not None else (2.0 if sys.stderr.isatty() else 15.0)
 
@@ -211,7 +230,7 @@ class Runner:
         stored = translate_layout(self.cfg, self.graph, written)
         changes = {s: c for s in self.names if s in stored and (c := stored[s].changes(self.fps[s]))}
         redo: set[str] = set()
-        if self.opts.from_stage:
+        if self.opts.from_stage in self.names:
             redo |= set(self.names[self.names.index(self.opts.from_stage):])
         if self.opts.force:
             redo |= set(changes)
@@ -280,26 +299,105 @@ class Runner:
 
     # ----------------------------------------------------------------------------- the run
     def run(self) -> dict:
+        for st in self.batches:  # refusals that would otherwise come after the stages before them ran
+            if st.check is not None:
+                st.check(self._context(st), self.cfg)
         try:
             with RunLock(self.run_dir), to_file(self.run_dir / LOG_FILE):
-                for st in self.graph.stages:
-                    sweep_interrupted_writes(self._dir(st.name))
-                stores = self.open_stores()
-                try:
-                    self.check_inputs(stores)
+                t0 = time.perf_counter()
+                counts = self._run_data() if self.enabled else {}
+                if self.enabled:
+                    self._phase_done("data", t0)
+                else:
                     atomic_write_bytes(self.run_dir / CONFIG_FILE, yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False).encode())
-                    self._loop(stores)
-                    if self.group is not None and self.group.name in self.enabled:
-                        self._finish(stores)
-                except BaseException:
-                    self._close(stores, failing=True)
-                    raise
-                self._close(stores)
-                return {s: stores[s].manifest.counts.model_dump() for s in self.names}
+                for st in self.batches:
+                    t0 = time.perf_counter()
+                    counts[st.name] = self._run_batch(st)
+                    self._phase_done(st.phase, t0)
+                return counts
         except (OSError, sqlite3.OperationalError) as e:
             if (what := no_space(e, self.run_dir)) is None:
                 raise
             raise NoSpaceLeft(what) from None
+
+    def _phase_done(self, phase: str, t0: float) -> None:
+        if self.opts.on_phase is not None:
+            self.opts.on_phase(phase, time.perf_counter() - t0)
+
+    def _run_data(self) -> dict:
+        """The data stages: episodes stream through the episode stages, groups are written as
+        their members resolve; per-stage counts."""
+        for s in self.names:
+            sweep_interrupted_writes(self._dir(s))
+        stores = self.open_stores()
+        try:
+            self.check_inputs(stores)
+            atomic_write_bytes(self.run_dir / CONFIG_FILE, yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False).encode())
+            self._loop(stores)
+            if self.group is not None and self.group.name in self.enabled:
+                self._finish(stores)
+        except BaseException:
+            self._close(stores, failing=True)
+            raise
+        self._close(stores)
+        return {s: stores[s].manifest.counts.model_dump() for s in self.names}
+
+    # ----------------------------------------------------------------------------- batch stages
+    def _context(self, st: Stage) -> BatchContext:
+        return BatchContext(self.run_dir, self._dir(st.name), frozenset(s.name for s in self.batches) | set(self.enabled),
+                            self.opts.force or st.name in self.opts.redo or self._redone(st.name), self.opts.keep_outputs)
+
+    def _redone(self, name: str) -> bool:
+        """``--from-stage`` names ``name`` or a stage before it."""
+        names = self.graph.names
+        return self.opts.from_stage is not None and names.index(name) >= names.index(self.opts.from_stage)
+
+    def _complete_on_disk(self, name: str) -> bool:
+        d = self._dir(name)
+        m = read_summary(d) if d.is_dir() else None
+        return m is not None and m.complete
+
+    def _run_batch(self, st: Stage) -> dict:
+        """A batch stage: its inputs complete, its fingerprint from their files, its items in the
+        driver (``in_driver``) or in a pool of actors, then its report; its counts."""
+        for a in st.after:
+            if not self._complete_on_disk(a):
+                raise ValueError(f"stage {st.name}: its input stage {a} is not complete ({self._dir(a)}); run it first")
+        ctx = self._context(st)
+        sweep_interrupted_writes(ctx.folder)
+        fp = st.fingerprint(ctx, self.cfg)
+        stored = read_summary(ctx.folder) if ctx.folder.is_dir() else None
+        changed = stored.fingerprint.changes(fp) if stored is not None else []
+        keep = bool(changed) and ctx.keep_outputs and changed == ["code"] and not ctx.force
+        if ctx.refuses(changed):
+            raise StaleStageError(f"{ctx.folder}: made with another {', '.join(changed)} than now (stage {st.name}); "
+                                  f"rerun with --force to redo it{', or --keep-outputs to keep it' if changed == ['code'] else ''}")
+        if changed and not keep:
+            log.info(f"{st.name}: {', '.join(changed)} changed; redoing it from scratch (--force)")
+        elif keep:
+            log.info(f"{st.name}: keeping the outputs other code made, as --keep-outputs asks")
+        store = ManifestStore(ctx.folder, st.name, fp, reset=bool(changed) and not keep, adopt=keep)
+        try:
+            items = st.items(self.cfg)
+            pending = [i for i in items if not store.done(i)]
+            log.info(f"{st.name}: {len(items)} items ({len(items) - len(pending)} already done)")
+            store.finish(len(items), not pending)  # the fingerprint is on disk before any output is
+            if pending and st.in_driver:
+                for i in pending:
+                    t0 = time.perf_counter()
+                    out = st.run(self.run_dir, self.cfg, BatchItem(i, ctx.folder, self.opts.stop_at.get(i)))
+                    if out is None:
+                        break  # stopped on purpose: resumable
+                    store.record(_done_record(i, out, time.perf_counter() - t0, 1))
+                    self.stats.done[st.name] += 1
+            elif pending:
+                self._loop({st.name: store}, lone=st, pending=pending)
+            store.finish(len(items), all(store.done(i) for i in items))
+            if st.report is not None:
+                st.report(ctx, self.cfg, {i: r for i in items if (r := store.items.get(i)) is not None})
+            return store.manifest.counts.model_dump()
+        finally:
+            store.close()
 
     def _close(self, stores: dict[str, ManifestStore], failing: bool = False) -> None:
         """Commit each store's totals and close it. On a full disk the rest are closed without
@@ -346,10 +444,13 @@ class Runner:
         n = sum(1 for ep in self.episodes if episode_id(*ep) in status)
         return upstream_complete and n >= self._planned(stores, s)
 
-    def _loop(self, stores: dict[str, ManifestStore]) -> None:
-        enabled = self.enabled
-        group = self.group.name if self.group is not None else None
-        queues: dict[str, deque] = {s: deque() for s in self.names}
+    def _loop(self, stores: dict[str, ManifestStore], lone: Stage | None = None, pending: Sequence[str] = ()) -> None:
+        """Run items in pools of actors until none is left: the enabled data stages' (episodes
+        flowing from stage to stage, groups as they become ready), or the ``pending`` items of
+        ``lone``, a batch stage."""
+        enabled = [lone.name] if lone is not None else self.enabled
+        group = self.group.name if self.group is not None and lone is None else None
+        queues: dict[str, deque] = {s: deque() for s in self.graph.names}
         queued: set[tuple[str, str]] = set()
         groups_left = {k for k in range(len(self.plan)) if not stores[group].done(_group_id(k))} if group else set()
 
@@ -375,7 +476,9 @@ class Runner:
                 queues[group].append(k)
                 queued.add((group, _group_id(k)))
 
-        for ep in self.episodes:
+        if lone is not None:
+            queues[lone.name].extend(pending)
+        for ep in self.episodes if lone is None else ():
             eid = episode_id(*ep)
             self._release(stores, eid)  # finishes a release a crash interrupted
             if not enqueue_episode(eid, ep):
@@ -387,7 +490,7 @@ class Runner:
 
         pools = self._start_pools(enabled)
         in_flight: dict = {}  # ObjectRef → (stage, actor index, [(item id, key, attempt), …])
-        load = {s: [0] * len(pools.get(s, [])) for s in self.names}  # calls in flight per actor
+        load = {s: [0] * len(pools.get(s, [])) for s in self.graph.names}  # calls in flight per actor
         triage = CrashTriage()
         pings: dict = {}      # ObjectRef of a ping → actor (stage, index): a died one, or a new one telling its node
         ping_due: dict = {}   # actor → when to ping it (again)
@@ -402,7 +505,14 @@ class Runner:
         cap = self.cfg.execution.in_flight_per_worker
 
         def item_id_of(s, key) -> str:
+            if lone is not None:
+                return key
             return _group_id(key) if s == group else episode_id(*key)
+
+        def item_of(s, key):
+            if lone is not None:
+                return BatchItem(key, self._dir(s))
+            return self.group_item(stores, key) if s == group else self.episode_item(stores, self.graph[s], key)
 
         consumer = {st.name: nxt.name for st, nxt in zip(self.chain, self.chain[1:])
                     if st.release is not None and nxt.name in enabled}
@@ -436,7 +546,7 @@ class Runner:
                     attempts[(s, item_id)] = attempts.get((s, item_id), 0) + 1
                     batch.append((item_id, key, attempts[(s, item_id)]))
                     triage.submitted((s, a), (s, item_id))
-                items = [(i, self.group_item(stores, k) if s == group else self.episode_item(stores, st, k), n) for i, k, n in batch]
+                items = [(i, item_of(s, k), n) for i, k, n in batch]
                 in_flight[pools[s][a].run_many.remote(items)] = (s, a, batch)
                 load[s][a] += 1
 
@@ -486,6 +596,7 @@ class Runner:
             if out is None and reason == NO_SPACE:
                 raise NoSpaceLeft(detail)  # not the item's fault: nothing recorded, the run stops
             if out is None and attempt < self.cfg.execution.max_attempts:
+                log.warning(f"{s} {item_id}: {reason}: {detail}; trying again (attempt {attempt + 1})")
                 queues[s].appendleft(key)
                 return
             if out is None:
@@ -495,14 +606,14 @@ class Runner:
                 self._check_failures(stores, s)
             else:
                 stores[s].record(_done_record(item_id, out, seconds, attempt, result.node, result.cpu_seconds), durable=False)
-                if s != group and not out.info.continues:
+                if lone is None and s != group and not out.info.continues:
                     self.halted[s].add(item_id)
                 self.stats.done[s] += 1
                 self.stats.compute[s] += seconds
-                if s != group:
+                if lone is None and s != group:
                     self._release(stores, item_id)
             queued.discard((s, item_id))
-            if s != group and not enqueue_episode(item_id, key):
+            if lone is None and s != group and not enqueue_episode(item_id, key):
                 resolved(key)
 
         try:
@@ -547,6 +658,8 @@ class Runner:
                         _refuse_unstartable(s, e)
                         if (s, a) not in triage.down:  # its first lost call: ping it until it is back
                             ping_due[(s, a)] = time.perf_counter() + 0.5
+                            log.warning(f"stage {s}: worker {a} died with {', '.join(i for i, _, _ in batch)} in flight "
+                                        f"({type(e).__name__}); they run again, each alone, on a worker that answers")
                         for item_id, key, attempt in batch:
                             blame = triage.lost((s, a), (s, item_id))
                             triage.finished((s, a), (s, item_id), ok=False)
@@ -565,12 +678,12 @@ class Runner:
                 now = time.perf_counter()
                 if now - last_print >= self.interval:
                     last_print = now
-                    self._print_progress(stores)
+                    self._print_progress(stores, lone, len(pending))
         finally:
             for refs in pools.values():
                 for actor in refs:
                     ray.kill(actor)
-        self._print_progress(stores)
+        self._print_progress(stores, lone, len(pending))
 
     def _batch_size(self, s: str) -> int:
         """Items per actor call for stage ``s``: one until a few are measured, then as many as
@@ -596,7 +709,12 @@ class Runner:
                 stores[st.name].record(rec.model_copy(update={"output": out.output, "checksum": out.checksum,
                                                                "info": out.info.model_dump(mode="json")}), durable=False)
 
-    def _print_progress(self, stores: dict[str, ManifestStore]) -> None:
+    def _print_progress(self, stores: dict[str, ManifestStore], lone: Stage | None = None, pending: int = 0) -> None:
+        """One line: per enabled data stage (or the batch stage ``lone``, ``pending`` items of
+        this call) items done, failed, rate and ETA."""
+        if lone is not None:
+            log.info(self.stats.line(lone.name, pending, 0))
+            return
         lines = []
         for s in self.enabled:
             total = len(self.plan) if self.group is not None and s == self.group.name else self._planned(stores, s)
@@ -616,7 +734,7 @@ class Runner:
         resources = ray.cluster_resources()
         gpus_available = resources.get("GPU", 0) > 0
         def pool(s: str):
-            return self.cfg.execution.pools.of(s, self.graph[s].resources)
+            return self.graph[s].pool_of(self.cfg)
 
         need = sum(pool(s).cpus * (self.opts.workers or pool(s).workers) for s in enabled)
         if need > resources.get("CPU", 0) + 1e-9:
@@ -626,7 +744,7 @@ class Runner:
         for s in enabled:
             pc = pool(s)
             n = self.opts.workers or pc.workers
-            gpus = pc.gpus if pc.gpus is not None else (1.0 / n if s == "render" and gpus_available else 0.0)
+            gpus = pc.gpus if pc.gpus is not None else (1.0 / n if self.graph[s].gpu_share and gpus_available else 0.0)
             if gpus > 0 and not gpus_available:
                 raise ValueError(f"execution.pools.{s}.gpus: {gpus} GPUs asked for, but the Ray cluster has none")
             # SPREAD: a pool's actors go to different nodes where they fit (on one node: no change)
@@ -689,7 +807,7 @@ def keep_ray_on_loopback() -> None:
     constants.ENABLE_RAY_CLUSTER = False  # read when Ray was imported: set it here too
 
 
-def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph = DATA_GRAPH) -> None:
+def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph = GRAPH) -> None:
     """Connect to Ray: the running instance if any, a cluster at ``address`` (else at ``RAY_ADDRESS``,
     as inside a Ray Job), or a new local one with enough logical CPUs for every pool (CPU counts are
     reservations, not a speed limit). Without an address a run never joins a cluster that happens to
@@ -704,7 +822,7 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph =
         return
     need = 0.0
     if cfg is not None:
-        pools = [cfg.execution.pools.of(st.name, st.resources) for st in graph.stages]
+        pools = [st.pool_of(cfg) for st in graph.stages if not st.in_driver and (not st.batch or (st.wanted and st.wanted(cfg)))]
         need = sum(p.cpus * p.workers for p in pools)
     # A new local Ray enables token authentication by default and warns that it did: nothing a
     # user needs to act on, so that one message is dropped. It listens on loopback only.
@@ -715,12 +833,17 @@ def ensure_ray(address: str | None, cfg: RunConfig | None = None, graph: Graph =
     watch_local_ray(ctx.address_info["session_dir"])  # its helpers go when this process dies, however it dies
 
 
-def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(), graph: Graph = DATA_GRAPH) -> dict:
-    """Run (or resume) the stages of ``graph`` (the data stages) for ``cfg`` in ``run_dir``;
-    returns per-stage counts."""
+def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(), graph: Graph = GRAPH) -> dict:
+    """Run (or resume) stages of ``graph`` for ``cfg`` in ``run_dir``: ``opts.stages``, else the
+    graph's targets for the config (the data stages, then training and evaluation where the config
+    has their sections); returns per-stage counts."""
     unknown = [s for s in (opts.stages or ()) if s not in graph.names]
     if unknown:
         raise ValueError(f"--stages: unknown stage {unknown[0]!r}; choose from {', '.join(graph.names)}")
+    unset = [s for s in (opts.stages or ()) if graph[s].batch and not (graph[s].wanted and graph[s].wanted(cfg))]
+    if unset:
+        section = "training" if unset[0].startswith("train") else "evaluation"
+        raise ValueError(f"--stages: {unset[0]} needs the run config's {section} section (`anchordp3 train` / `anchordp3 eval` set it)")
     if opts.from_stage and opts.from_stage not in graph.names:
         raise ValueError(f"--from-stage: unknown stage {opts.from_stage!r}; choose from {', '.join(graph.names)}")
     from anchordp3.pipeline.inspect import check_task_names
@@ -731,7 +854,7 @@ def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(),
     return Runner(cfg, run_dir, opts, graph).run()
 
 
-def join_cluster(address: str | None, cfg: RunConfig | None = None, graph: Graph = DATA_GRAPH) -> None:
+def join_cluster(address: str | None, cfg: RunConfig | None = None, graph: Graph = GRAPH) -> None:
     """``ensure_ray`` for a cluster address given by the user (``--address`` or ``RAY_ADDRESS``):
     an address Ray cannot parse or reach is a one-line error naming it."""
     try:

@@ -20,8 +20,8 @@ import torch
 
 from anchordp3.pipeline.evaluation import PRETRAINED_DIR, RUN_CONFIG_FILE
 from anchordp3.pipeline.store import MANIFEST, read_manifest
-from anchordp3.pipeline.training import MODELS, TRAINING_FILE, model_dir, trained_model
-from anchordp3.schemas.training import DiffusionSchedulerConfig
+from anchordp3.pipeline.training import TRAINING_FILE, model_dir, trained_model
+from anchordp3.schemas.training import MODELS, DiffusionSchedulerConfig
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.training_loop import load_checkpoint
 

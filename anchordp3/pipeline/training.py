@@ -1,8 +1,10 @@
 """Training the three models of a run: ``<run>/models/<name>/`` with a manifest each.
 
-``train_models(run_dir, ["segmenter", "classifier", "policy"], config)`` reads the run's
-``config.yaml`` and its dataset (``<run>/dataset``, complete), then trains each model in that
-order through its stage function (``stages.train_*``). Each model folder holds ``model.pt``,
+Each model is a train stage of the graph (``products.GRAPH``: ``train-segmenter``,
+``train-classifier``, ``train-policy``), run by the runner in the driver, in that order, once
+the dataset (``<run>/dataset``) is complete; ``train_item`` is a stage's one item.
+``train_models(run_dir, ["segmenter", "classifier", "policy"], config)`` runs them with
+``config`` as the run config's ``training`` section. Each model folder holds ``model.pt``,
 ``metrics.csv``, ``tensorboard/``, ``loss.png``, ``training.yaml`` (the resolved config) and a
 manifest (``records.sqlite``, stage ``train-<name>``) with one item, the model: final
 validation metrics, steps, wall time, and the checkpoint's path and sha256.
@@ -11,15 +13,14 @@ Fingerprint of a model = code version + hash of what its weights depend on (seed
 precision and the model's section of ``TrainingConfig``; not the device or the loop settings) +
 upstream: the ``dataset.json`` checksum (segmenter, policy) and, for the policy, the segmenter
 checkpoint it took its 12th channel from. A model whose fingerprint changed is refused (one-line
-error) unless ``force``; one that is done with the same fingerprint is skipped; an interrupted
-one resumes from its checkpoint. The classifier learns from the instruction bank, not from the
-dataset, so a new dataset does not invalidate it. One process per run directory (``RunLock``).
+error, before any model trains) unless ``force``; one that is done with the same fingerprint is
+skipped; an interrupted one resumes from its checkpoint. The classifier learns from the
+instruction bank, not from the dataset, so a new dataset does not invalidate it.
 """
 
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,29 +32,26 @@ import yaml
 import anchordp3
 from anchordp3.dataset.files import file_sha256
 from anchordp3.dataset.reader import ShardedDataset, open_dataset
-from anchordp3.logs import to_file
 from anchordp3.models.device import pick_device
 from anchordp3.pipeline.codehash import code_hash
-from anchordp3.pipeline.lock import RunLock
-from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_manifest
+from anchordp3.pipeline.store import read_manifest
+from anchordp3.pipeline.graph import BatchContext, BatchItem, StageOutput
 from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.dataset import INFO_FILE
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.records import ModelInfo
-from anchordp3.schemas.run import config_hash, load_run_config
+from anchordp3.schemas.run import RunConfig, config_hash, load_run_config
 from anchordp3.schemas.sections import overlay
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
-from anchordp3.schemas.training import TrainingConfig, training_preset
+from anchordp3.schemas.training import MODELS, TrainingConfig, training_preset
 from anchordp3.stages.files import atomic_write_bytes
-from anchordp3.stages.training_loop import MODEL_FILE, TrainResult, format_metrics, format_seconds
+from anchordp3.stages.training_loop import MODEL_FILE, format_metrics, format_seconds
 
 log = logging.getLogger(__name__)
 
-MODELS: tuple[str, ...] = ("segmenter", "classifier", "policy")
 MODELS_DIR = "models"
 CONFIG_FILE = "config.yaml"
 TRAINING_FILE = "training.yaml"
-LOG_FILE = "logs/train.log"  # the trainings' messages and progress lines, appended per invocation
 
 
 
@@ -127,48 +125,76 @@ def trained_model(run_dir: Path, name: str) -> tuple[Path, str] | None:
 
 
 # ---------------------------------------------------------------------------------------- training
-@dataclass
-class Trained:
-    """One model's outcome in a ``train_models`` call: ``status`` is ``trained``, ``up-to-date`` or
-    ``stopped`` (``stop_at`` reached; resumable)."""
-
-    name: str
-    status: str
-    record: ItemRecord | None
-    result: TrainResult | None = None
+def train_item(run_dir: Path, cfg: RunConfig, item: BatchItem) -> StageOutput | None:
+    """Train model ``item.id`` of the run with ``cfg.training``, resuming its checkpoint: a train
+    stage's one item, run in the driver while the runner holds its manifest. Returns the model
+    file, its sha256 and ``ModelInfo``, or None when ``item.stop_at`` stopped it (resumable)."""
+    return _train(Path(run_dir), item.id, cfg.training, item.stop_at)
 
 
-def train_models(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: bool = False, stop_at: dict[str, int] | None = None) -> list[Trained]:
-    """Train models ``names`` (in ``MODELS`` order) of the run at ``run_dir``; see the module doc.
-
-    force: retrain a model whose fingerprint changed (its folder is emptied first); a model that is
-    up to date stays as it is.
-    stop_at: ``{name: step}``: stop that model there with a resumable checkpoint (tests, demos)."""
-    run_dir = Path(run_dir)
-    unknown = [n for n in names if n not in MODELS]
-    if unknown:
-        raise ValueError(f"model: unknown {unknown}; choose from {list(MODELS)} or all")
-    if not (run_dir / CONFIG_FILE).is_file():
-        raise FileNotFoundError(f"{run_dir}: not a run directory (no {CONFIG_FILE}); run `anchordp3 run CONFIG --run-dir {run_dir}` first")
-    run_cfg = load_run_config(run_dir / CONFIG_FILE)
+def _train(run_dir: Path, name: str, cfg: TrainingConfig, stop_at: int | None) -> StageOutput | None:
     device = pick_device(cfg.device)
     threads = torch.get_num_threads()
     if device.type == "cpu" and cfg.loop.cpu_threads:
         torch.set_num_threads(cfg.loop.cpu_threads)
-    out: list[Trained] = []
     try:
-        with RunLock(run_dir), to_file(run_dir / LOG_FILE):
-            data = _open_run_dataset(run_dir) if any(n != "classifier" for n in names) else None
+        d = model_dir(run_dir, name)
+        channel = _critical_channel(run_dir, cfg) if name == "policy" else None
+        digest = _fingerprint_of(run_dir, name, cfg, channel).digest()
+        atomic_write_bytes(d / TRAINING_FILE, yaml.safe_dump(model_config_part(cfg, name), sort_keys=False).encode())
+        data = _open_run_dataset(run_dir) if name != "classifier" else None
+        try:
+            if name == "segmenter":
+                from anchordp3.stages.train_segmenter import train_segmenter
+
+                result = train_segmenter(data, cfg, d, device, digest, stop_at)
+            elif name == "classifier":
+                from anchordp3.stages.train_classifier import train_classifier
+
+                result = train_classifier(cfg, d, device, digest, stop_at)
+            else:
+                from anchordp3.stages.train_policy import train_policy
+
+                result = train_policy(data, cfg, d, device, channel, digest, stop_at)
+        finally:
             if data is not None:
-                missing = sorted(set(data.tasks) - set(run_cfg.tasks))
-                if missing:
-                    raise ValueError(f"{stage_dir(run_dir, 'write')}: dataset tasks {missing} are not in the run config's tasks")
-            _preflight(run_dir, names, cfg, force)
-            for name in (n for n in MODELS if n in names):
-                out.append(_train_one(run_dir, name, cfg, data, device, force, (stop_at or {}).get(name)))
+                data.close()
     finally:
         torch.set_num_threads(threads)
-    return out
+    if not result.finished:
+        return None
+    log.info(f"{name}: done in {format_seconds(result.seconds)}: {format_metrics(result.metrics)} -> {result.model_path}")
+    return StageOutput(MODEL_FILE, result.checksum, ModelInfo(
+        metrics=result.metrics, steps=result.step, train_seconds=round(result.seconds, 2), device=str(device),
+        checkpoint=str(Path(MODELS_DIR) / name / MODEL_FILE), resumed_from=result.resumed_from,
+        critical_channel=channel.source if channel is not None else None))
+
+
+def model_fingerprint(name: str):
+    """Model ``name``'s train stage fingerprint hook: ``(BatchContext, cfg) -> Fingerprint``."""
+    return lambda ctx, cfg: _fingerprint_of(ctx.run_dir, name, cfg.training)
+
+
+def check_train_stages(ctx: BatchContext, cfg: RunConfig) -> None:
+    """The train stages' up-front refusals (``check_training``) for the models this call trains."""
+    names = [n for n in MODELS if stage_name(n) in ctx.stages]
+    check_training(ctx.run_dir, cfg.training, names, ctx.force, ctx.keep_outputs)
+
+
+def check_training(run_dir: Path, cfg: TrainingConfig, names: Sequence[str], force: bool, keep_outputs: bool = False) -> None:
+    """What training ``names`` would refuse only later, refused before anything runs: a dataset of
+    other tasks than the run config's, and ``_preflight``'s refusals."""
+    run_dir = Path(run_dir)
+    if any(n != "classifier" for n in names) and (stage_dir(run_dir, "write") / INFO_FILE).is_file():
+        run_cfg = load_run_config(run_dir / CONFIG_FILE)
+        data = open_dataset(stage_dir(run_dir, "write"))
+        try:
+            missing = sorted(set(data.tasks) - set(run_cfg.tasks))
+        finally:
+            data.close()
+        if missing:
+            raise ValueError(f"{stage_dir(run_dir, 'write')}: dataset tasks {missing} are not in the run config's tasks")
+    _preflight(run_dir, names, cfg, force, keep_outputs)
 
 
 def _open_run_dataset(run_dir: Path) -> ShardedDataset:
@@ -178,26 +204,31 @@ def _open_run_dataset(run_dir: Path) -> ShardedDataset:
     return open_dataset(d)
 
 
-def _preflight(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: bool) -> None:
+def _preflight(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: bool, keep_outputs: bool = False) -> None:
     """Refuse at once what training ``names`` would refuse only after training the models before
     it: a model trained with another config, code or data (without ``force``), a policy on top of a
     segmenter this call retrains, and a policy whose ``label_channel: auto`` finds no segmenter
     (it would train on the simulator's masks, a policy the segmenter-fed closed loop never sees)."""
     retrained: set[str] = set()
+    have_data = (stage_dir(run_dir, "write") / INFO_FILE).is_file()
     for name in (n for n in MODELS if n in names):
+        if name == "policy" and cfg.policy.label_channel == "auto" and "segmenter" not in names \
+                and trained_model(run_dir, "segmenter") is None:
+            raise ValueError(f"policy.label_channel 'auto': {model_dir(run_dir, 'segmenter')} holds no trained segmenter; "
+                             "train it first (`anchordp3 train segmenter`, or `train all`), or set label_channel: "
+                             "ground_truth to train on the simulator's masks")
+        if name != "classifier" and not have_data:
+            continue  # the data comes in this call: checked when the stage starts
         d = model_dir(run_dir, name)
         stored = read_manifest(d) if d.is_dir() else None
         if name == "policy":
-            if cfg.policy.label_channel == "auto" and "segmenter" not in names and trained_model(run_dir, "segmenter") is None:
-                raise ValueError(f"policy.label_channel 'auto': {model_dir(run_dir, 'segmenter')} holds no trained segmenter; "
-                                 "train it first (`anchordp3 train segmenter`, or `train all`), or set label_channel: "
-                                 "ground_truth to train on the simulator's masks")
             if "segmenter" in retrained and stored is not None and stored.complete and not force:
                 raise ValueError(f"{d}: trained on the segmenter this call trains anew; pass --force to retrain it too")
             if "segmenter" in retrained:
                 continue  # its fingerprint depends on the segmenter to come
         fp = _fingerprint_of(run_dir, name, cfg)
-        if stored is not None and stored.fingerprint != fp:
+        changes = stored.fingerprint.changes(fp) if stored is not None else []
+        if changes and not (keep_outputs and changes == ["code"] and not force):
             if not force:
                 raise _stale(d, stored.fingerprint, fp)
             retrained.add(name)
@@ -231,74 +262,11 @@ def _critical_channel(run_dir: Path, cfg: TrainingConfig):
 
 def _stale(d: Path, old: Fingerprint, new: Fingerprint) -> ValueError:
     """The refusal of a model folder ``d`` trained under fingerprint ``old`` where ``new`` is wanted."""
-    return ValueError(f"{d}: trained with a different {_what_changed(old, new)}; pass --force to retrain it, "
+    keep = ", --keep-outputs to keep it" if old.changes(new) == ["code"] else ""
+    return ValueError(f"{d}: trained with a different {_what_changed(old, new)}; pass --force to retrain it{keep}, "
                       "or the settings it was trained with to keep it")
 
 
 def _what_changed(old: Fingerprint, new: Fingerprint) -> str:
     words = {"code": "code", "config": "training config"}
     return " and ".join(words.get(c, c.removeprefix("upstream ")) for c in old.changes(new)) or "fingerprint"
-
-
-def _train_one(run_dir: Path, name: str, cfg: TrainingConfig, data: ShardedDataset | None, device: torch.device,
-               force: bool, stop_at: int | None) -> Trained:
-    d = model_dir(run_dir, name)
-    channel = _critical_channel(run_dir, cfg) if name == "policy" else None
-    fp = _fingerprint_of(run_dir, name, cfg, channel)
-    try:
-        store = ManifestStore(d, stage_name(name), fp)
-    except StaleStageError:
-        stored = read_manifest(d).fingerprint
-        if not force:
-            raise _stale(d, stored, fp) from None
-        log.info(f"{name}: {_what_changed(stored, fp)} changed; retraining from scratch (--force)")
-        store = ManifestStore(d, stage_name(name), fp, reset=True)
-    try:
-        if store.done(name):
-            rec = store.items[name]
-            log.info(f"{name}: up to date ({format_metrics(rec.payload(ModelInfo).metrics)})")
-            return Trained(name, "up-to-date", rec)
-        store.finish(1, False)  # the fingerprint is on disk before any checkpoint is
-        atomic_write_bytes(d / TRAINING_FILE, yaml.safe_dump(model_config_part(cfg, name), sort_keys=False).encode())
-        t0 = time.perf_counter()
-        digest = fp.digest()
-        if name == "segmenter":
-            from anchordp3.stages.train_segmenter import train_segmenter
-
-            result = train_segmenter(data, cfg, d, device, digest, stop_at)
-        elif name == "classifier":
-            from anchordp3.stages.train_classifier import train_classifier
-
-            result = train_classifier(cfg, d, device, digest, stop_at)
-        else:
-            from anchordp3.stages.train_policy import train_policy
-
-            result = train_policy(data, cfg, d, device, channel, digest, stop_at)
-        if not result.finished:
-            return Trained(name, "stopped", None, result)
-        info = ModelInfo(metrics=result.metrics, steps=result.step, train_seconds=round(result.seconds, 2), device=str(device),
-                         checkpoint=str(Path(MODELS_DIR) / name / MODEL_FILE), resumed_from=result.resumed_from,
-                         critical_channel=channel.source if channel is not None else None)
-        rec = ItemRecord(item=name, status="done", output=MODEL_FILE, checksum=result.checksum,
-                         seconds=time.perf_counter() - t0, info=info.model_dump(mode="json", exclude_none=True))
-        store.record(rec)
-        store.finish(1, True)
-        log.info(f"{name}: done in {format_seconds(result.seconds)}: {format_metrics(result.metrics)} -> {result.model_path}")
-        return Trained(name, "trained", rec, result)
-    finally:
-        store.close()
-
-
-def training_summary(results: Sequence[Trained]) -> str:
-    """A table of the models of one ``train_models`` call: status, steps, seconds, metrics, checkpoint."""
-    from anchordp3.viz.table import text_table
-
-    rows = []
-    for t in results:
-        if t.status == "stopped" and t.result is not None:
-            rows.append([t.name, t.status, f"{t.result.step}/{t.result.total_steps}", f"{t.result.seconds:.1f}", "", ""])
-            continue
-        info = t.record.payload(ModelInfo) if t.record else None
-        rows.append([t.name, t.status, info.steps if info else "", info.train_seconds if info else "",
-                     format_metrics(info.metrics) if info else "", t.record.output if t.record else ""])
-    return text_table(["model", "status", "steps", "train s", "validation", "checkpoint"], rows)

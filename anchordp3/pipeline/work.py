@@ -110,7 +110,7 @@ DATA_GRAPH = Graph((
     Stage("rollout", "rollout", _rollout, RolloutInfo, "anchordp3.stages.rollout", _part("rollout")),
     Stage("anchors", "anchors", _anchors, AnchorsInfo, "anchordp3.stages.anchors", _part("anchors"), needs=(RolloutInfo,)),
     Stage("render", "render", _render, RenderInfo, "anchordp3.stages.render", _part("render"), needs=(RolloutInfo,),
-          release=_release_frames),
+          release=_release_frames, gpu_share=True),
     Stage("features", "features", _features, FeaturesInfo, "anchordp3.stages.features", _part("features")),
     Stage("write", "dataset", _write, ShardInfo, "anchordp3.stages.write", _part("write"), needs=(RolloutInfo,),
           group=_shards, finish=_index, finish_item=INDEX_ITEM),

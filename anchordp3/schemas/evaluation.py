@@ -1,7 +1,9 @@
 """Closed-loop evaluation settings, written once: ``EvalSettings`` (how episodes are decided and
-run) is the ``eval:`` section of the experiment and recipe configs; ``EvalOptions`` adds what is
-evaluated and where (models, tasks, seeds, folder, cluster). ``anchordp3 eval``'s flags are made
-from ``EvalOptions``'s fields, their help from the descriptions below.
+run) is the ``eval:`` section of the experiment and recipe configs; ``EvaluationConfig`` adds what
+is evaluated (models, tasks, seeds, preset) and is a run config's ``evaluation:`` section, read by
+the evaluate stages; ``EvalOptions`` adds where and how to run it (folder, restart, cluster).
+``anchordp3 eval``'s flags are made from ``EvalOptions``'s fields, their help from the
+descriptions below.
 """
 
 from __future__ import annotations
@@ -32,16 +34,14 @@ class EvalSettings(BaseModel):
     strips: int = Field(default=2, ge=0, description="Episodes per task (the first seeds) that also get a frame strip, strips/<task>/<seed>.png.")
 
 
-class EvalOptions(EvalSettings):
-    """One evaluation: the settings, and which models on which tasks and seeds, written where."""
+class EvaluationConfig(EvalSettings):
+    """One evaluation: the settings, and which models on which tasks, seeds and scenes."""
 
     models: str | None = Field(default=None, description="Models folder (segmenter/, classifier/, policy/) or 'pretrained' (default: the run's).")
     tasks: tuple[str, ...] | None = Field(default=None, description="Comma-separated tasks (default: every task the models were trained on).")
     seeds: str | None = Field(default=None, description="Seeds, e.g. 2000-2049, or 'train' for the training seeds (default: --episodes unseen seeds).")
     preset: str | None = Field(default=None, description="Randomization preset of the scenes (default: the training data's).")
-    out: Path | None = Field(default=None, description="Evaluation folder (default: <run>/eval; without a run, runs/eval-<models folder name>).")
-    force: bool = Field(default=False, description="Start over where the folder holds an evaluation of other models, settings or code (default: refuse; the same ones resume).")
-    address: str | None = Field(default=None, description="Ray cluster address (default: $RAY_ADDRESS, else a local Ray).")
+    train_episodes: int = Field(default=0, ge=0, description="Training seeds per task evaluated again, into <evaluation folder>/train: does the policy redo what it was shown (0: none).")
 
     @field_validator("tasks", mode="before")
     @classmethod
@@ -50,3 +50,16 @@ class EvalOptions(EvalSettings):
         if isinstance(v, str):
             v = [t.strip() for t in v.split(",") if t.strip()]
         return None if v is None or len(v) == 0 else tuple(v)
+
+
+class EvalOptions(EvaluationConfig):
+    """One evaluation as a command runs it: what, and in which folder, from scratch or not, where."""
+
+    out: Path | None = Field(default=None, description="Evaluation folder (default: <run>/eval; without a run, runs/eval-<models folder name>).")
+    force: bool = Field(default=False, description="Start over where the folder holds an evaluation of other models, settings or code (default: refuse; the same ones resume).")
+    keep_outputs: bool = Field(default=False, description="Keep an evaluation that only older code made (same models and settings) instead of refusing it.")
+    address: str | None = Field(default=None, description="Ray cluster address (default: $RAY_ADDRESS, else a local Ray).")
+
+    def target(self) -> EvaluationConfig:
+        """What is evaluated, without where and how it runs: a run config's ``evaluation:`` section."""
+        return EvaluationConfig(**{k: getattr(self, k) for k in EvaluationConfig.model_fields})

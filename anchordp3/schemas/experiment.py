@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field
 
-from anchordp3.schemas.evaluation import EvalOptions, EvalSettings
+from anchordp3.schemas.evaluation import EvalSettings, EvaluationConfig
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.training import TrainingConfig
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
@@ -18,9 +18,10 @@ class ExperimentEvalConfig(EvalSettings):
 
     episodes: int = Field(default=3, ge=1, description="Unseen evaluation seeds per task (from max training seed + 1000).")
 
-    def options(self, **extra) -> EvalOptions:
-        """These settings as ``EvalOptions``, with ``extra`` (seeds, out, address, ...) beside them."""
-        return EvalOptions(**{**{k: getattr(self, k) for k in EvalSettings.model_fields}, **extra})
+    def target(self, **extra) -> EvaluationConfig:
+        """These settings as a run config's ``evaluation`` section, with ``extra`` (first seed, ...)."""
+        own = {k: getattr(self, k) for k in EvaluationConfig.model_fields if k in type(self).model_fields}
+        return EvaluationConfig(**{**own, **extra})
 
 
 class ExperimentConfig(BaseModel):

@@ -11,6 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from anchordp3.schemas.camera import CameraRigConfig
 from anchordp3.schemas.dataset import WriteConfig
 from anchordp3.schemas.episode import SeedSet, parse_seed_set
+from anchordp3.schemas.evaluation import EvaluationConfig
 from anchordp3.schemas.yaml_files import read_yaml_mapping, validate_mapping
 from anchordp3.schemas.randomization import PRESETS
 from anchordp3.schemas.robot import RobotSpec, default_robot
@@ -18,6 +19,7 @@ from anchordp3.schemas.sections import PartialSections
 from anchordp3.schemas.sim import SimConfig, WorldConfig
 from anchordp3.schemas.randomization import preset as preset_config
 from anchordp3.schemas.stages import AnchorsConfig, FeaturesConfig, RenderConfig
+from anchordp3.schemas.training import TrainingConfig
 
 class PoolConfig(BaseModel):
     """A stage's pool of Ray actors."""
@@ -58,7 +60,8 @@ class ExecutionConfig(BaseModel):
 
 
 class RunConfig(BaseModel):
-    """A data run: which tasks and seeds, the world, and every stage's settings."""
+    """A run: which tasks and seeds, the world, every data stage's settings and, when the run goes
+    on to them, the training of its models and their closed-loop evaluation."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -75,6 +78,8 @@ class RunConfig(BaseModel):
     features: FeaturesConfig = Field(default_factory=FeaturesConfig, description="Point-cloud features.")
     write: WriteConfig = Field(default_factory=WriteConfig, description="The sharded dataset.")
     execution: ExecutionConfig = Field(default_factory=ExecutionConfig, description="Actor pools, retries, failure bound (not part of any stage's fingerprint).")
+    training: TrainingConfig | None = Field(default=None, description="Training of the segmenter, classifier and policy: the train stages (none: `anchordp3 run` makes the data only; `anchordp3 train` sets it).")
+    evaluation: EvaluationConfig | None = Field(default=None, description="Closed-loop evaluation of the run's models: the evaluate stages (none: no evaluation; `anchordp3 eval` sets it).")
 
     @field_validator("seeds")
     @classmethod

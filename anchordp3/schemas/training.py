@@ -21,6 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from anchordp3.schemas.sections import PartialSections
 from anchordp3.schemas.tasks import TASK_NAMES, task_id
 
+MODELS: tuple[str, ...] = ("segmenter", "classifier", "policy")  # the three models of a run, in training order
+
 
 def model_task_ids(dataset_tasks: Sequence[str]) -> list[int]:
     """Lookup table from a dataset's task ids (indices into its own task list, e.g.

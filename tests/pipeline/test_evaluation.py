@@ -12,19 +12,13 @@ import pytest
 import torch
 
 from anchordp3.logs import Capture
-from anchordp3.pipeline.evaluation import (
-    EVAL_DIR,
-    LOG_FILE,
-    eval_seeds,
-    run_evaluation,
-    wilson_interval,
-)
-from anchordp3.pipeline.runner import RunOptions, run_pipeline
+from anchordp3.pipeline.evaluation import EVAL_DIR, eval_seeds, wilson_interval
+from anchordp3.pipeline.runner import LOG_FILE, RunOptions, run_pipeline
 from anchordp3.pipeline.store import has_manifest, read_manifest
-from anchordp3.pipeline.training import MODELS, train_models
+from anchordp3.pipeline.targets import run_evaluation, train_models
 from anchordp3.schemas.evaluation import EvalOptions
 from anchordp3.schemas.run import RunConfig
-from anchordp3.schemas.training import TrainingConfig
+from anchordp3.schemas.training import MODELS, TrainingConfig
 from tiny_models import tiny_data, tiny_training
 
 DATA = tiny_data("tiny-eval", ["place_mouse"], "0-1")
@@ -93,7 +87,7 @@ def test_evaluation_writes_records_and_reports(trained_run):
     with Capture() as cap:
         assert run_evaluation(trained_run, opts) == records
     assert any("2 already done" in r.message for r in cap.records)
-    assert "2 already done" in (out / LOG_FILE).read_text()  # and in the evaluation's log file
+    assert "2 already done" in (trained_run / LOG_FILE).read_text()  # and in the run's log file
 
 
 def test_eval_cli(trained_run, tmp_path):
@@ -168,15 +162,16 @@ def test_status_lists_the_run_s_models_and_evaluations_beside_its_data_stages(tr
     assert rows["evaluate (eval)"].stale and not rows["train classifier"].stale
 
 
-def test_an_episode_whose_worker_is_killed_mid_episode_starts_again_and_ends_as_it_would_have(trained_run, tmp_path, monkeypatch):
+def test_an_episode_whose_worker_is_killed_starts_again_on_a_new_worker_and_ends_as_it_would_have(trained_run, tmp_path, monkeypatch):
     from anchordp3.pipeline.actors import FAULTS_ENV
 
     opts = dict(seeds="1500,1501", workers=1, max_decisions=2, strips=0)
     clean = run_evaluation(trained_run, EvalOptions(out=tmp_path / "clean", **opts))
-    monkeypatch.setenv(FAULTS_ENV, "evaluate:place_mouse/001500:1:crash")  # the worker exits at the episode's 2nd decision
+    monkeypatch.setenv(FAULTS_ENV, "evaluate:place_mouse/001500:1:crash")  # the worker process exits with the episode's call in flight
     with Capture() as cap:
         crashed = run_evaluation(trained_run, EvalOptions(out=tmp_path / "crashed", **opts))
-    assert any("its worker died" in r.message and "attempt 2" in r.message for r in cap.records)
+    assert any("worker 0 died with place_mouse/001500 in flight" in r.message for r in cap.records)
+    assert any("place_mouse/001500: " in r.message and "attempt 2" in r.message for r in cap.records)
     drop = lambda rs: [{k: v for k, v in r.items() if k != "seconds"} for r in rs]  # noqa: E731
     assert drop(crashed) == drop(clean)
     m = read_manifest(tmp_path / "crashed")
@@ -302,14 +297,20 @@ def test_a_watcher_sees_every_decision_before_it_is_carried_out_and_changes_noth
 
 
 def test_a_consensus_of_samples_is_a_setting_of_the_evaluation_that_keeps_one_sample_s_records(trained_run):
-    from anchordp3.pipeline.evaluation import _fingerprint, eval_run_config, models_folder
+    from anchordp3.pipeline.evaluation import eval_run_config, evaluation_fingerprint, models_folder
+    from anchordp3.pipeline.graph import BatchContext
+    from anchordp3.schemas.evaluation import EvaluationConfig
     from anchordp3.stages.evaluate import EvalModels
 
     models_dir = models_folder(trained_run, None)
-    cfg = eval_run_config(trained_run, models_dir, EvalOptions())
-    one = _fingerprint(models_dir, cfg, EvalOptions())
-    assert _fingerprint(models_dir, cfg, EvalOptions(samples=1)) == one  # evaluations made before the option keep theirs
-    assert _fingerprint(models_dir, cfg, EvalOptions(samples=8)) != one
+    ctx = BatchContext(trained_run, trained_run / EVAL_DIR)
+
+    def fingerprint(**settings):
+        return evaluation_fingerprint(ctx, eval_run_config(trained_run, models_dir, EvaluationConfig(**settings)))
+
+    one = fingerprint()
+    assert fingerprint(samples=1) == one  # evaluations made before the option keep theirs
+    assert fingerprint(samples=8) != one
     g = torch.Generator().manual_seed(0)
     points, state = torch.rand(256, 11, generator=g).numpy(), torch.rand(32, generator=g).numpy()
     picked = EvalModels(models_dir, samples=4).anchors(points, state, 0, noise_seed=3)

@@ -56,7 +56,7 @@ def test_the_recipe_experiment_is_the_recipe_as_its_anchors_arm_evaluated_as_the
     configs = Path(__file__).resolve().parents[2] / "configs"
     exp, recipe = load_experiment_config(configs / "experiment_recipe.yaml"), load_recipe_config(configs / "recipe.yaml")
     assert exp.run == recipe.run and exp.training == recipe.training
-    opts, same = exp.eval.options(first_seed=1199), recipe.eval.options(first_seed=1199)
+    opts, same = exp.eval.target(first_seed=1199), recipe.eval.target(first_seed=1199)
     for field in ("episodes", "workers", "max_decisions", "through", "samples", "ddim_steps", "first_seed"):
         assert getattr(opts, field) == getattr(same, field), field
     assert opts.ddim_steps == 5

@@ -139,3 +139,65 @@ def test_a_stage_with_transient_outputs_stays_a_few_items_ahead_of_its_consumer(
     assert len(made) == 20 and len(_records(tmp_path, graph, "consume")) == 20
     cap = cfg.execution.in_flight_per_worker
     assert max(r.payload(MadeInfo).unconsumed for r in made.values()) <= 2 * cap + 1
+
+
+class CountInfo(Payload):
+    n: int = Field(description="The item's number.")
+
+
+def _count(run: Path, cfg: RunConfig, item) -> StageOutput:
+    """A batch stage's item: writes its number into the stage folder."""
+    (item.folder / f"{item.id}.txt").write_text(item.id)
+    return StageOutput(f"{item.id}.txt", None, CountInfo(n=int(item.id)))
+
+
+def _count_report(ctx, cfg: RunConfig, records: dict) -> None:
+    (ctx.folder / "report.txt").write_text(",".join(sorted(records)))
+
+
+def _fixed(fp: str):
+    from anchordp3.schemas.manifest import Fingerprint
+
+    return lambda ctx, cfg: Fingerprint(code_version="0", code_hash="", config_hash=fp, upstream={})
+
+
+def _batch(name: str, fp: str = "a", in_driver: bool = False, after: tuple[str, ...] = ("noop_group",)) -> Stage:
+    return Stage(name, name, _count, CountInfo, __name__, lambda cfg: {}, items=lambda cfg: [f"{i}" for i in range(6)],
+                 after=after, fingerprint=_fixed(fp), wanted=lambda cfg: True, report=_count_report,
+                 in_driver=in_driver, resources=PoolConfig(workers=2, cpus=0.1))
+
+
+def test_batch_stages_follow_the_data_through_the_same_runner_with_retries_resume_and_force(ray_session, tmp_path, monkeypatch):
+    from anchordp3.logs import Capture
+    from anchordp3.pipeline.actors import FAULTS_ENV
+    from anchordp3.pipeline.store import StaleStageError
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    first, step, group = noop_graph(2).stages
+    graph = Graph((first, step, group, _batch("counted"), _batch("local", in_driver=True, after=("counted",))))
+    assert graph.targets(CFG) == graph.names and graph.batch_stages[0].name == "counted"
+    monkeypatch.setenv(FAULTS_ENV, "counted:3:1,counted:4:1:crash")  # one item raises once, one kills its worker once
+    with Capture() as cap:
+        counts = run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60), graph=graph)
+    monkeypatch.delenv(FAULTS_ENV)
+    assert counts["counted"]["done"] == 6 and counts["local"]["done"] == 6 and counts["noop_group"]["done"] > 0
+    recs = _records(tmp_path, graph, "counted")
+    assert recs["3"].attempts == 2 and recs["4"].status == "done" and recs["5"].payload(CountInfo).n == 5
+    assert (tmp_path / "counted" / "report.txt").read_text() == "0,1,2,3,4,5"
+    assert any("worker" in r.message and "died with" in r.message for r in cap.records)
+    with Capture() as cap:  # resumed: nothing redone
+        run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60, stages=("counted", "local")), graph=graph)
+    assert any("counted: 6 items (6 already done)" in r.message for r in cap.records)
+    changed = Graph((first, step, group, _batch("counted", fp="b"), _batch("local", in_driver=True, after=("counted",))))
+    with pytest.raises(StaleStageError, match="counted.*--force"):
+        run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60, stages=("counted",)), graph=changed)
+    run_pipeline(CFG, tmp_path, RunOptions(progress_interval=60, stages=("counted",), force=True), graph=changed)
+    assert read_manifest(tmp_path / "counted").complete and _records(tmp_path, changed, "counted")["3"].attempts == 1
+
+
+def test_a_batch_stage_waits_for_its_inputs_and_batch_stages_come_last():
+    first, step, group = noop_graph(2).stages
+    with pytest.raises(ValueError, match="batch stages come after"):
+        Graph((first, _batch("counted"), step, group))
+    with pytest.raises(ValueError, match="comes after"):
+        Graph((first, step, group, _batch("counted", after=("nowhere",))))

@@ -11,7 +11,7 @@ from anchordp3.schemas.recipe import RecipeConfig
 from tiny_models import tiny_data, tiny_training
 
 
-def test_recipe_runs_data_training_and_both_evaluations_then_resumes_without_redoing(ray_session, tmp_path):
+def test_recipe_is_one_run_of_the_graph_through_both_evaluations_and_resumes_without_redoing(ray_session, tmp_path):
     cfg = RecipeConfig.model_validate({
         "run": tiny_data("tiny-recipe", ["place_mouse"], "0-1"),
         "training": tiny_training(3, 3, 3, loop={"log_interval_s": 30.0, "cpu_threads": 1}, device="cpu"),
@@ -26,9 +26,15 @@ def test_recipe_runs_data_training_and_both_evaluations_then_resumes_without_red
         assert results["seconds"][phase] > 0
     report = (tmp_path / "report.md").read_text()
     assert "place_mouse" in report and "unseen seeds" in report and "first anchor cm" in report
-    assert (tmp_path / "eval" / "report.md").is_file() and (tmp_path / "eval-train" / "report.md").is_file()
+    assert (tmp_path / "run" / "eval" / "report.md").is_file() and (tmp_path / "run" / "eval" / "train" / "report.md").is_file()
+    from anchordp3.pipeline.inspect import product_status
+
+    rows = {r.stage: r for r in product_status(tmp_path / "run")}  # status shows both evaluations beside the models
+    assert rows["evaluate (eval)"].complete and rows["evaluate (eval/train)"].done == 1
     assert json.loads((tmp_path / "results.json").read_text())["unseen"] == results["unseen"]
     with Capture() as cap:
         assert run_recipe(tmp_path, cfg)["unseen"] == results["unseen"]
     again = [r.message for r in cap.records]
-    assert any("1 already done" in line for line in again) and any("up to date" in line for line in again)
+    assert any("evaluate: 1 items (1 already done)" in line for line in again)
+    assert any("train-policy: 1 items (1 already done)" in line for line in again)
+    assert not any("redoing" in line for line in again)

@@ -22,7 +22,10 @@ from anchordp3.models.kernels import reference_kernels
 from anchordp3.models.policy import AnchorDiffusionPolicy
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
 from anchordp3.pipeline.store import read_manifest
-from anchordp3.pipeline.training import LOG_FILE, MODELS, load_training_config, model_dir, train_models
+from anchordp3.pipeline.runner import LOG_FILE
+from anchordp3.pipeline.targets import train_models
+from anchordp3.pipeline.training import load_training_config, model_dir
+from anchordp3.schemas.training import MODELS
 from anchordp3.pipeline.work import stage_dir
 from anchordp3.schemas.records import ModelInfo
 from anchordp3.schemas.run import RunConfig
