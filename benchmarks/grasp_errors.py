@@ -65,7 +65,7 @@ class GraspWatch:
             prob = self.models.segmenter.probabilities(pts)
             full = append_critical_probability(pts, prob)
             _, centres = cluster_critical_points(full[..., :3], full[..., -1] > 0.5, 2,
-                                                 self.models.policy.config.token_z_weight)
+                                                 self.models.policy.config.objects.z_weight)
             self.token_cm = 100 * float(np.min(np.linalg.norm(centres[0, :, :2].numpy() - obj[:2, 3], axis=1)))
         g = ep.layout.gripper(arm)
         if self.close is None and ep.robot.joint_target()[g] > 0.5 and pred[0][g] < 0.5:

@@ -75,9 +75,9 @@ class ReleaseWatch:
         centroids = token_centroids(tokens.float())[0][0].numpy()
         if cls == 0:
             return "stay", centroids
-        if not policy.config.held_offsets:
+        if not policy.config.objects.held_offsets:
             return f"object {cls - 1}", centroids
-        obj, held = divmod(cls - 1, policy.config.object_tokens)
+        obj, held = divmod(cls - 1, policy.config.objects.tokens)
         return (f"object {obj}" if obj == held else f"pair {obj}-{held}"), centroids
 
     def __call__(self, ep, decision: int, points: np.ndarray, pred: np.ndarray) -> None:

@@ -1,8 +1,9 @@
 """The anchor diffusion policy: one observation frame -> the next H anchors (H x 32).
 
 Observation: ``points (B, N, 12)`` (11 features + critical probability), ``state (B, 32)``,
-``task_id (B,)``. With ``object_tokens`` the critical points' K clusters (``models.objects``) add
-their own feature to the condition, and with ``anchored_offsets`` the offset of the object a
+``task_id (B,)``. With the object head (``config.objects``) the critical points' K clusters
+(``models.objects``) add their own feature to the condition, and with its ``anchored_offsets`` the
+offset of the object a
 classifier picks per (slot, arm) is added to the denoiser's clean sample where it holds
 end-effector positions (``anchored_shift``; the classifier learns which object each labelled anchor
 lies by, ``gate_loss``). The task's own point encoder and the state MLP give the FiLM condition of one
@@ -75,9 +76,10 @@ class AnchorDiffusionPolicy(nn.Module):
         self.point_encoder = TaskConditionedEncoder(config.num_tasks, config.point_encoder)
         self.state_encoder = StateEncoder(config.state_encoder)
         self.object_encoder = None
-        if config.object_tokens:
-            self.object_encoder = ObjectTokenEncoder(config.object_tokens, out_dim=config.object_encoder_dim,
-                                                     features=token_features(config.object_orientation))
+        self.objects = objects = config.objects  # the object head's settings, or None
+        if objects is not None:
+            self.object_encoder = ObjectTokenEncoder(objects.tokens, out_dim=objects.encoder_dim,
+                                                     features=token_features(objects.orientation))
         self.unet = ConditionalUnet1D(config.action_dim, config.cond_dim, config.unet)
         self.point_normalizer = MinMaxNormalizer(self.point_channels)
         self.state_normalizer = MinMaxNormalizer(config.action_dim)
@@ -85,10 +87,10 @@ class AnchorDiffusionPolicy(nn.Module):
         self.delta_normalizer = MinMaxNormalizer(config.horizon * config.action_dim)  # relative targets, per slot
         self.noise_scheduler = make_scheduler(config.scheduler)
         self.anchor_gates = None
-        if config.anchored_offsets:  # logits per (slot, arm): none or one offset
+        if objects is not None and objects.anchored_offsets:  # logits per (slot, arm): none or one offset
             self.anchor_gates = nn.Sequential(
                 nn.Linear(config.cond_dim, GATE_HIDDEN), nn.Mish(),
-                nn.Linear(GATE_HIDDEN, config.horizon * len(ARMS) * (config.gate_choices + 1)))
+                nn.Linear(GATE_HIDDEN, config.horizon * len(ARMS) * (objects.gate_choices + 1)))
 
     # ------------------------------------------------------------------------------ setup
     @property
@@ -122,7 +124,7 @@ class AnchorDiffusionPolicy(nn.Module):
     # --------------------------------------------------------------------------- forward
     def encode_observation(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """obs (data units) -> FiLM condition (B, cond_dim): point feature, state feature and, with
-        ``object_tokens``, the critical-object tokens' feature."""
+        the object head, the critical-object tokens' feature."""
         return self._condition(obs)[0]
 
     def _condition(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -131,8 +133,8 @@ class AnchorDiffusionPolicy(nn.Module):
         parts = [self.point_encoder(self.point_normalizer(points), task_id), self.state_encoder(self.state_normalizer(state))]
         tokens = None
         if self.object_encoder is not None:
-            tokens = object_tokens(points, state, self.layout, self.config.object_tokens,
-                                   orientation=self.config.object_orientation, z_weight=self.config.token_z_weight)
+            tokens = object_tokens(points, state, self.layout, self.objects.tokens,
+                                   orientation=self.objects.orientation, z_weight=self.objects.z_weight)
             parts.append(self.object_encoder(tokens.to(parts[0].dtype)))
         return torch.cat(parts, dim=-1), tokens
 
@@ -141,12 +143,12 @@ class AnchorDiffusionPolicy(nn.Module):
         float32, one per (horizon slot, arm in ``ARMS`` order, offset: an object token, or with
         ``held_offsets`` an (object, held object) pair, ``pair_offsets``): the one-hot of the
         classifier's choice (``gate_logits``), all zero where it chose no object."""
-        return F.one_hot(self.gate_logits(cond).argmax(-1), self.config.gate_choices + 1)[..., 1:].float()
+        return F.one_hot(self.gate_logits(cond).argmax(-1), self.objects.gate_choices + 1)[..., 1:].float()
 
     def gate_logits(self, cond: torch.Tensor) -> torch.Tensor:
         """The gating classifier: ``cond (B, cond_dim)`` -> logits ``(B, H, arms, 1 +
         gate_choices)`` over "no object" (class 0) and offset g (class g + 1)."""
-        return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.config.gate_choices + 1)
+        return self.anchor_gates(cond.float()).view(-1, self.config.horizon, len(ARMS), self.objects.gate_choices + 1)
 
     def anchored_shift(self, gates: torch.Tensor | None, tokens: torch.Tensor | None) -> torch.Tensor | float:
         """What ``anchored_offsets`` adds to the denoiser's clean sample, ``(B, H, D)`` in normalised
@@ -159,7 +161,7 @@ class AnchorDiffusionPolicy(nn.Module):
             return 0.0
         h, d = self.config.horizon, self.config.action_dim
         shift = gates.new_zeros((gates.shape[0], h, d), dtype=torch.float32)
-        offsets = pair_offsets(tokens) if self.config.held_offsets else token_gripper_offsets(tokens.float())  # (B, G, arms, 3)
+        offsets = pair_offsets(tokens) if self.objects.held_offsets else token_gripper_offsets(tokens.float())  # (B, G, arms, 3)
         for a, arm in enumerate(ARMS):
             shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a].float(), offsets[:, :, a])
         return shift * self.delta_normalizer.scale.view(h, d).to(shift.dtype)
@@ -186,7 +188,7 @@ class AnchorDiffusionPolicy(nn.Module):
             return F.mse_loss(pred.float(), target)
         labels = self.gate_targets(tokens, anchors, state)
         loss = F.mse_loss(pred.float() + self.anchored_shift(labels, tokens), target)
-        return loss + self.config.gate_supervision * self.gate_loss(cond, labels)
+        return loss + self.objects.gate_supervision * self.gate_loss(cond, labels)
 
     def gate_targets(self, tokens: torch.Tensor, anchors: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """Which offset each labelled anchor takes: ``anchors (B, H, D)``, ``state (B, D)`` data units,
@@ -198,19 +200,20 @@ class AnchorDiffusionPolicy(nn.Module):
         would be (the anchor plus j's offset from the gripper now), j itself excluded: a place
         anchor lies by its target, not by the object it carries."""
         positions = torch.stack([anchors[:, :, self.layout.ee_xyz(arm)] for arm in ARMS], dim=2)  # (B, H, arms, 3)
-        if self.config.held_offsets:
+        obj = self.objects
+        if obj.held_offsets:
             grippers = torch.stack([state[:, self.layout.gripper(arm)] for arm in ARMS], dim=-1)
             held = held_tokens(tokens, grippers)  # (B, arms, K)
-        if self.config.held_destination:  # where the held object would be, by any object but itself
+        if obj.held_destination:  # where the held object would be, by any object but itself
             grip = torch.einsum("bak,bkac->bac", held, token_gripper_offsets(tokens.float()))  # (B, arms, 3)
-            near = nearest_token_gates(positions + grip[:, None], tokens, self.config.gate_radius, exclude=held)
+            near = nearest_token_gates(positions + grip[:, None], tokens, obj.gate_radius, exclude=held)
         else:
-            near = nearest_token_gates(positions, tokens, self.config.gate_radius)  # (B, H, arms, K)
-        if self.config.stay_radius:
+            near = nearest_token_gates(positions, tokens, obj.gate_radius)  # (B, H, arms, K)
+        if obj.stay_radius:
             now = torch.stack([state[:, self.layout.ee_xyz(arm)] for arm in ARMS], dim=1)  # (B, arms, 3)
-            moves = (positions - now[:, None]).norm(dim=-1) >= self.config.stay_radius  # (B, H, arms)
+            moves = (positions - now[:, None]).norm(dim=-1) >= obj.stay_radius  # (B, H, arms)
             near = near * moves[..., None].to(near.dtype)
-        if not self.config.held_offsets:
+        if not obj.held_offsets:
             return near
         eye = torch.eye(tokens.shape[1], device=tokens.device)
         other = held[:, None, :, None, :] * (1 - eye)  # (B, 1, arms, K, K): holds j != k

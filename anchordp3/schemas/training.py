@@ -18,7 +18,7 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from anchordp3.schemas.sections import PartialSections
+from anchordp3.schemas.sections import PartialSections, overlay
 from anchordp3.schemas.tasks import TASK_NAMES, task_id
 
 MODELS: tuple[str, ...] = ("segmenter", "classifier", "policy")  # the three models of a run, in training order
@@ -244,6 +244,85 @@ class EMAConfig(_Config):
     max_value: float = Field(default=0.9999, ge=0, le=1, description="Upper bound of the decay.")
 
 
+class ObjectHeadConfig(_Config):
+    """The object head (``models.objects``): the points the critical channel marks, clustered into
+    ``tokens`` objects, each summarised beside the point encoder, and optionally the anchors
+    predicted relative to the object a classifier picks."""
+
+    tokens: int = Field(
+        default=2, ge=1, le=8,
+        description="Critical-object tokens: the critical points clustered into this many objects (k-means, largest "
+                    "first), each summarised by its centroid, its offset from each end effector, its spread and size.")
+    orientation: bool = Field(
+        default=False,
+        description="Each token also carries the direction of its points' principal axis in the table plane, "
+                    "anisotropy x (cos 2θ, sin 2θ) (models.objects.principal_axis): the yaw at which an elongated object "
+                    "is grasped, which the per-axis spread cannot tell apart from its mirror image.")
+    z_weight: float = Field(
+        default=1.0, gt=0,
+        description="The tokens' clustering counts heights this many times over: above 1, an object held over another "
+                    "(a place) is clustered apart from it instead of the pile being cut in two across; 1: plain "
+                    "Euclidean k-means (rung 20; ladder rung 23 measures 5).")
+    encoder_dim: int = Field(default=64, ge=1, description="Width of the tokens' feature in the FiLM condition.")
+    anchored_offsets: bool = Field(
+        default=False,
+        description="Anchor the predicted end-effector positions to the objects: the denoiser's clean sample gets, in "
+                    "each arm's end-effector xyz of each horizon slot, the offset from that arm's end effector of the "
+                    "token a classifier picks there (or none), so 'pre-grasp = object centroid + offset' is one choice "
+                    "away (needs relative targets and 'sample' prediction); off: the tokens only condition the U-Net.")
+    gate_supervision: float = Field(
+        default=0.0, ge=0,
+        description="Weight of the anchored offsets' classifier loss (> 0 exactly with anchored_offsets): a classifier "
+                    "per (slot, arm) picks 'no object' or a token, trained by cross-entropy on the labelled anchor's "
+                    "nearest token within gate_radius (models.objects.nearest_token_gates), one-hot at use: in "
+                    "training the offsets follow the label, in prediction the classifier's argmax (rung 15).")
+    held_offsets: bool = Field(
+        default=False,
+        description="With anchored_offsets, the classifier may also pick 'object k relative to the object the arm "
+                    "holds' (a token within models.objects.HELD_RADIUS of a closed gripper): a place anchor is "
+                    "'target + offset - where the object sits in the hand', as the expert computes it (rung 18).")
+    held_destination: bool = Field(
+        default=False,
+        description="With held_offsets, an anchor of an arm that holds object j is labelled by the object nearest "
+                    "where j would be (the anchor's end effector plus j's offset from the gripper now), j itself "
+                    "excluded, so a place lies by its target, not by the carried object (rungs 18-23; ladder rung 25).")
+    stay_radius: float = Field(
+        default=0.0, ge=0,
+        description="Metres: a labelled anchor whose end effector lies within this distance of the current one is "
+                    "'in place' (a gripper closing or opening where it stands): its gate target is 'no object', so it "
+                    "is predicted relative to the state (rung 18; needs anchored_offsets when > 0).")
+    gate_radius: float = Field(
+        default=0.15, gt=0,
+        description="Metres: an anchor further than this from every token's centroid belongs to no object (its gates' "
+                    "target is 0); used with anchored_offsets.")
+
+    @model_validator(mode="after")
+    def _needs(self) -> ObjectHeadConfig:
+        if bool(self.gate_supervision) != self.anchored_offsets:
+            raise ValueError("gate_supervision: > 0 exactly when anchored_offsets (the weight of its classifier's loss)")
+        if self.held_offsets and not self.anchored_offsets:
+            raise ValueError("held_offsets: needs anchored_offsets")
+        if self.held_destination and not self.held_offsets:
+            raise ValueError("held_destination: needs held_offsets")
+        if self.stay_radius and not self.anchored_offsets:
+            raise ValueError("stay_radius: needs anchored_offsets")
+        return self
+
+    @property
+    def gate_choices(self) -> int:
+        """Offsets a gate can pick per (slot, arm), besides none: the tokens, and with ``held_offsets``
+        each (object k, held object j != k) pair as well (``tokens ** 2`` in all)."""
+        return self.tokens ** 2 if self.held_offsets else self.tokens
+
+
+FLAT_OBJECT_FIELDS = {  # the object head's fields before it was one section -> their names in it
+    "object_tokens": "tokens", "object_orientation": "orientation", "token_z_weight": "z_weight",
+    "object_encoder_dim": "encoder_dim", "anchored_offsets": "anchored_offsets", "gate_supervision": "gate_supervision",
+    "held_offsets": "held_offsets", "held_destination": "held_destination", "stay_radius": "stay_radius",
+    "gate_radius": "gate_radius",
+}
+
+
 class PolicyConfig(_Config):
     """Anchor diffusion policy: one frame (points, state, task) -> next ``horizon`` anchors."""
 
@@ -264,95 +343,49 @@ class PolicyConfig(_Config):
         description="State and anchor dimensions spanning less than this (rad, m, or unitless) are normalised as if they "
                     "spanned this much, so a nearly constant joint is not stretched thousands of times into noise "
                     "(0: DP3's plain min/max limits).")
-    object_tokens: int = Field(
-        default=0, ge=0, le=8,
-        description="Critical-object tokens beside the point encoder: the points the critical channel marks, "
-                    "clustered into this many objects (k-means, largest first), each summarised by its centroid, its "
-                    "offset from each end effector, its spread and size (models.objects); 0: none, as in the report.")
-    object_orientation: bool = Field(
-        default=False,
-        description="Each object token also carries the direction of its points' principal axis in the table plane, "
-                    "anisotropy x (cos 2θ, sin 2θ) (models.objects.principal_axis): the yaw at which an elongated object "
-                    "is grasped, which the per-axis spread cannot tell apart from its mirror image (needs object_tokens > 0).")
-    token_z_weight: float = Field(
-        default=1.0, gt=0,
-        description="The object tokens' clustering counts heights this many times over (models.objects): above 1, "
-                    "an object held over another (a place) is clustered apart from it instead of the pile being cut "
-                    "in two across; 1: plain Euclidean k-means (rung 20; ladder rung 23 measures 5).")
-    object_encoder_dim: int = Field(default=64, ge=1, description="Width of the object tokens' feature in the FiLM condition (with object_tokens > 0).")
-    anchored_offsets: bool = Field(
-        default=False,
-        description="Anchor the predicted end-effector positions to the objects: the denoiser's clean sample gets, in "
-                    "each arm's end-effector xyz of each horizon slot, the offset from that arm's end effector of the "
-                    "object token a classifier picks there (or none; gate_supervision), so 'pre-grasp = object "
-                    "centroid + offset' is one choice away (needs object_tokens > 0, relative targets, 'sample' "
-                    "prediction and gate_supervision > 0); off: the U-Net alone, as in the report.")
-    gate_supervision: float = Field(
-        default=0.0, ge=0,
-        description="Weight of the anchored offsets' classifier loss (needs anchored_offsets, > 0): a classifier per "
-                    "(slot, arm) picks 'no object' or one of the tokens, trained by cross-entropy on the labelled "
-                    "anchor's nearest token within gate_radius (models.objects.nearest_token_gates), one-hot at use: "
-                    "in training the offsets follow the label (teacher forcing), in prediction the classifier's "
-                    "argmax, so an anchor is never shifted halfway to an object (rung 15).")
-    held_offsets: bool = Field(
-        default=False,
-        description="With anchored_offsets, the classifier may also pick 'object k relative to the object the "
-                    "arm holds' (a token within models.objects.HELD_RADIUS of a closed gripper): its offset is k's "
-                    "centroid minus the held object's, so a place anchor is 'target + offset - where the object sits "
-                    "in the hand', as the expert computes it; off: every anchor relative to one object's centroid "
-                    "and the gripper (rung 15).")
-    held_destination: bool = Field(
-        default=False,
-        description="With held_offsets, an anchor of an arm that holds object j is labelled by the object nearest "
-                    "where j would be (the anchor's end effector plus j's offset from the gripper now), j itself "
-                    "excluded, so a place is 'the target's centroid minus the held object's, plus a residual'; "
-                    "none within gate_radius: relative to the state. Off: by the object nearest the anchor's end "
-                    "effector, which for a carried object is mostly the held one, so a place followed the held "
-                    "object's centroid, blind to the target (rungs 18-23; traced in ladder rung 25).")
-    stay_radius: float = Field(
-        default=0.0, ge=0,
-        description="Metres: a labelled anchor whose end effector lies within this distance of the current one is "
-                    "'in place' (a gripper closing or opening where it stands) and its gate target is 'no object', so "
-                    "it is predicted relative to the state rather than to an object's centroid, whose error (about a "
-                    "centimetre) it would otherwise inherit; 0: every anchor by an object is relative to it (rung 18; "
-                    "needs anchored_offsets when > 0).")
-    gate_radius: float = Field(
-        default=0.15, gt=0,
-        description="Metres: an anchor further than this from every object token's centroid belongs to no object "
-                    "(its gates' target is 0); used with gate_supervision > 0.")
+    objects: ObjectHeadConfig | None = Field(
+        default=None,
+        description="The object head beside the point encoder (not in the report): tokens of the critical objects "
+                    "and the anchors predicted relative to them; none: the point encoder alone, as in the report.")
+    preset: Literal["report", "recipe"] | None = Field(
+        default=None,
+        description="The named settings these start from (POLICY_PRESETS): 'report', the model the AnchorDP3 report "
+                    "describes; 'recipe', the shipped one (relative targets and the object head); fields given beside "
+                    "it override it.")
 
     @model_validator(mode="before")
     @classmethod
-    def _gating(cls, data: Any) -> Any:
-        """``anchor_gating`` of configs and checkpoints made before it was retired: 'hard' with
-        anchored offsets and 'soft' without them (where it meant nothing) read as today."""
-        if not isinstance(data, dict) or "anchor_gating" not in data:
+    def _read(cls, data: Any) -> Any:
+        """A named ``preset`` under the given fields; the object head's fields as configs and
+        checkpoints gave them before it was one section (``object_tokens``, ``anchored_offsets``,
+        ...: ``FLAT_OBJECT_FIELDS``); ``anchor_gating`` of those made before it was retired ('hard'
+        with anchored offsets and 'soft' without them, where it meant nothing, read as today)."""
+        if not isinstance(data, dict):
             return data
         data = dict(data)
-        if data.pop("anchor_gating") != "hard" and data.get("anchored_offsets"):
+        if data.get("preset") is not None:
+            if data["preset"] not in POLICY_PRESETS:
+                raise ValueError(f"preset: unknown policy preset {data['preset']!r}; choose one of {sorted(POLICY_PRESETS)}")
+            data = overlay(POLICY_PRESETS[data["preset"]], data)
+        given = [old for old in FLAT_OBJECT_FIELDS if old in data]
+        flat = {FLAT_OBJECT_FIELDS[old]: data.pop(old) for old in given}
+        if "anchor_gating" in data and data.pop("anchor_gating") != "hard" and flat.get("anchored_offsets"):
             raise ValueError(f"anchor_gating: 'soft' retired (soft gating of the anchored offsets, ladder rungs 9-14, not "
                              f"kept; its code is at commit {RETIRED_IN}): anchored offsets are gated hard (rung 15)")
+        if flat.get("tokens"):
+            data["objects"] = {**flat, **(data.get("objects") or {})}
+        elif set_ := [old for old in given if old != "object_tokens"
+                      and not _same(flat[FLAT_OBJECT_FIELDS[old]], ObjectHeadConfig.model_fields[FLAT_OBJECT_FIELDS[old]].default)]:
+            raise ValueError(f"{', '.join(set_)}: needs object_tokens > 0 (the object head)")
         return data
 
     @model_validator(mode="after")
     def _dims(self) -> PolicyConfig:
         if self.state_encoder.in_dim != self.action_dim:
             raise ValueError(f"state_encoder.in_dim: {self.state_encoder.in_dim} != action_dim {self.action_dim}")
-        if self.anchored_offsets and (not self.object_tokens or self.target != "relative"
-                                      or self.scheduler.prediction_type != "sample"):
-            raise ValueError("anchored_offsets: needs object_tokens > 0, target 'relative' and scheduler.prediction_type 'sample'")
-        if self.object_orientation and not self.object_tokens:
-            raise ValueError("object_orientation: needs object_tokens > 0")
-        if self.token_z_weight != 1 and not self.object_tokens:
-            raise ValueError("token_z_weight: needs object_tokens > 0")
-        if bool(self.gate_supervision) != self.anchored_offsets:
-            raise ValueError("gate_supervision: > 0 exactly when anchored_offsets (the weight of its classifier's loss)")
-        if self.held_offsets and not self.anchored_offsets:
-            raise ValueError("held_offsets: needs anchored_offsets")
-        if self.held_destination and not self.held_offsets:
-            raise ValueError("held_destination: needs held_offsets")
-        if self.stay_radius and not self.anchored_offsets:
-            raise ValueError("stay_radius: needs anchored_offsets")
+        if self.objects is not None and self.objects.anchored_offsets and (
+                self.target != "relative" or self.scheduler.prediction_type != "sample"):
+            raise ValueError("objects.anchored_offsets: needs target 'relative' and scheduler.prediction_type 'sample'")
         return self
 
     retired: ClassVar[dict[str, tuple[Any, str]]] = {
@@ -361,15 +394,19 @@ class PolicyConfig(_Config):
     }
 
     @property
-    def gate_choices(self) -> int:
-        """Offsets a gate can pick per (slot, arm), besides none: the object tokens, and with
-        ``held_offsets`` each (object k, held object j != k) pair as well (``object_tokens ** 2`` in all)."""
-        return self.object_tokens ** 2 if self.held_offsets else self.object_tokens
-
-    @property
     def cond_dim(self) -> int:
-        """Length of the observation feature fed to FiLM: point feature + state feature (+ object tokens' feature)."""
-        return self.point_encoder.out_dim + self.state_encoder.hidden_dim + (self.object_encoder_dim if self.object_tokens else 0)
+        """Length of the observation feature fed to FiLM: point feature + state feature (+ the object tokens' feature)."""
+        return self.point_encoder.out_dim + self.state_encoder.hidden_dim + (self.objects.encoder_dim if self.objects else 0)
+
+
+POLICY_PRESETS: dict[str, dict[str, Any]] = {  # PolicyConfig.preset: settings under the fields given beside it
+    "report": {"target": "absolute", "normalizer_min_range": 0.0, "objects": None},  # the report's DP3-style model
+    "recipe": {  # what ships: relative targets, the object head with anchored offsets (docs/policy_ladder.md)
+        "target": "relative", "normalizer_min_range": 0.05,
+        "objects": {"tokens": 2, "orientation": True, "z_weight": 5.0, "anchored_offsets": True, "gate_supervision": 0.1,
+                    "held_offsets": True, "held_destination": True, "stay_radius": 0.01, "gate_radius": 0.15},
+    },
+}
 
 
 class PolicyTrainingConfig(_Config):

@@ -12,9 +12,16 @@ from anchordp3.models.objects import (POSITION_SCALE, TOKEN_FEATURES, cluster_cr
                                       pair_offsets, token_features)
 from anchordp3.models.policy import AnchorDiffusionPolicy
 from anchordp3.schemas.state import ARMS, StateLayout
+from anchordp3.schemas.training import PolicyConfig
 from tests.models.test_policy_model import TINY, samples, stats_of
 
 LAYOUT = StateLayout()
+
+
+def head(base: PolicyConfig, **fields) -> PolicyConfig:
+    """``base`` with its object head's ``fields`` set (the head added when it has none), validated."""
+    objects = {**(base.objects.model_dump() if base.objects else {}), **fields}
+    return PolicyConfig.model_validate({**base.model_dump(), "objects": objects})
 
 
 def scene(seed: int = 0, stray: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -85,7 +92,7 @@ def test_counting_heights_over_leaves_objects_side_by_side_as_they_were() -> Non
 
 
 def test_the_policy_clusters_its_tokens_with_its_configured_height_weight() -> None:
-    policy = AnchorDiffusionPolicy(TINY.model_copy(update={"object_tokens": 2, "token_z_weight": 5.0}))
+    policy = AnchorDiffusionPolicy(head(TINY, tokens=2, z_weight=5.0))
     xyz, critical, _ = held_over_scale()
     feats = torch.cat([xyz, torch.rand(*xyz.shape[:2], 8, generator=torch.Generator().manual_seed(0))], dim=-1)
     batch = {**samples(1), "points": append_critical_probability(feats, critical.float())}
@@ -127,8 +134,8 @@ def test_a_cloud_without_critical_points_gives_empty_tokens() -> None:
 
 
 def test_the_policy_conditions_on_object_tokens_and_learns() -> None:
-    config = TINY.model_copy(update={"object_tokens": 2})
-    assert config.cond_dim == TINY.cond_dim + config.object_encoder_dim
+    config = head(TINY, tokens=2)
+    assert config.cond_dim == TINY.cond_dim + config.objects.encoder_dim
     torch.manual_seed(0)
     policy = AnchorDiffusionPolicy(config)
     batch = samples(4)
@@ -176,7 +183,7 @@ def test_orientation_tells_an_object_from_its_mirror_image_where_the_spread_cann
 
 
 def test_the_policy_reads_object_orientation_only_with_tokens() -> None:
-    config = TINY.model_copy(update={"object_tokens": 2, "object_orientation": True})
+    config = head(TINY, tokens=2, orientation=True)
     policy = AnchorDiffusionPolicy(config)
     assert policy.object_encoder.net[0].in_features == 2 * token_features(True)
     batch = samples(4)
@@ -186,7 +193,7 @@ def test_the_policy_reads_object_orientation_only_with_tokens() -> None:
         TINY.model_validate({**TINY.model_dump(), "object_orientation": True})
 
 
-ANCHORED = TINY.model_copy(update={"object_tokens": 2, "anchored_offsets": True, "gate_supervision": 1.0, "gate_radius": 0.15})
+ANCHORED = head(TINY, tokens=2, anchored_offsets=True, gate_supervision=1.0, gate_radius=0.15)
 
 
 def test_anchored_offsets_add_the_chosen_object_offsets_to_end_effector_positions_only() -> None:
@@ -212,9 +219,10 @@ def test_anchored_offsets_add_the_chosen_object_offsets_to_end_effector_position
 
 
 def test_anchored_offsets_need_object_tokens_and_relative_sample_targets() -> None:
-    for bad in ({"object_tokens": 0}, {"target": "absolute"}):
-        with pytest.raises(ValidationError, match="anchored_offsets"):
-            ANCHORED.model_validate({**ANCHORED.model_dump(), **bad})
+    with pytest.raises(ValidationError, match="anchored_offsets"):
+        ANCHORED.model_validate({**ANCHORED.model_dump(), "target": "absolute"})
+    with pytest.raises(ValidationError, match="anchored_offsets, gate_supervision: needs object_tokens"):  # the form configs had before the section
+        TINY.model_validate({**TINY.model_dump(), "object_tokens": 0, "anchored_offsets": True, "gate_supervision": 1.0})
 
 
 def moved_scenes(seeds: range) -> dict[str, torch.Tensor]:
@@ -252,7 +260,7 @@ def fitted(config, train: dict[str, torch.Tensor], steps: int) -> AnchorDiffusio
 def test_anchored_offsets_find_the_pre_grasp_in_scenes_not_trained_on() -> None:
     train, test = moved_scenes(range(16)), moved_scenes(range(100, 108))
     errors = {}
-    for name, config in (("tokens", TINY.model_copy(update={"object_tokens": 2})), ("anchored", ANCHORED)):
+    for name, config in (("tokens", head(TINY, tokens=2)), ("anchored", ANCHORED)):
         policy = fitted(config, train, 300)
         pred = policy.predict(test, generator=torch.Generator().manual_seed(1))
         left = LAYOUT.ee_xyz("left")
@@ -296,7 +304,7 @@ def test_anchored_offsets_train_on_the_labelled_objects() -> None:
     choice: the loss with the labels' shift equals ``compute_loss``'s diffusion part."""
     train = moved_scenes(range(4))
     torch.manual_seed(0)
-    policy = AnchorDiffusionPolicy(ANCHORED.model_copy(update={"gate_supervision": 1e-12}))
+    policy = AnchorDiffusionPolicy(head(ANCHORED, gate_supervision=1e-12))
     policy.set_normalizers(stats_of(train))
     with torch.no_grad():
         policy.anchor_gates[-1].bias.view(8, len(ARMS), 3)[:, 0] = torch.tensor([10.0, 0.0, 0.0])  # predicts "none"
@@ -315,14 +323,15 @@ def test_anchored_offsets_train_on_the_labelled_objects() -> None:
 
 def test_anchored_offsets_need_their_classifier_loss_and_soft_gating_is_retired() -> None:
     with pytest.raises(ValidationError, match="gate_supervision"):
-        ANCHORED.model_validate({**ANCHORED.model_dump(), "gate_supervision": 0.0})
+        head(ANCHORED, gate_supervision=0.0)
+    flat = {**TINY.model_dump(), "object_tokens": 2, "anchored_offsets": True, "gate_supervision": 1.0}  # as checkpoints have it
     with pytest.raises(ValidationError, match="anchor_gating: 'soft' retired"):
-        ANCHORED.model_validate({**ANCHORED.model_dump(), "anchor_gating": "soft"})
-    assert ANCHORED.model_validate({**ANCHORED.model_dump(), "anchor_gating": "hard"}) == ANCHORED  # as checkpoints have it
+        PolicyConfig.model_validate({**flat, "anchor_gating": "soft"})
+    assert PolicyConfig.model_validate({**flat, "anchor_gating": "hard"}) == ANCHORED
     assert TINY.model_validate({**TINY.model_dump(), "anchor_gating": "soft"}) == TINY  # meant nothing without offsets
 
 
-HELD = ANCHORED.model_copy(update={"held_offsets": True})
+HELD = head(ANCHORED, held_offsets=True)
 
 
 def held_scenes(seeds: range) -> dict[str, torch.Tensor]:
@@ -365,7 +374,7 @@ def test_held_offsets_label_a_place_relative_to_the_object_in_the_closed_gripper
     torch.testing.assert_close(table[3, 1], centroids[1] - batch["state"][0, LAYOUT.ee_xyz("right")], atol=1e-6, rtol=0)
 
 
-DESTINATION = HELD.model_copy(update={"held_destination": True})
+DESTINATION = head(HELD, held_destination=True)
 
 
 def carried_over_target() -> tuple[dict[str, torch.Tensor], torch.Tensor]:
@@ -407,7 +416,7 @@ def test_held_destination_labels_a_move_away_from_every_other_object_by_none() -
 
 def test_held_destination_needs_held_offsets() -> None:
     with pytest.raises(ValidationError, match="held_destination"):
-        ANCHORED.model_validate({**ANCHORED.model_dump(), "held_destination": True})
+        head(ANCHORED, held_destination=True)
 
 
 def first_left_errors(configs: dict, train: dict[str, torch.Tensor], test: dict[str, torch.Tensor],
@@ -431,7 +440,7 @@ def test_held_offsets_place_where_the_object_sits_in_the_hand() -> None:
     assert errors["held"] < 0.5 * errors["target"], errors
 
 
-STAY = HELD.model_copy(update={"stay_radius": 0.01})
+STAY = head(HELD, stay_radius=0.01)
 
 
 def in_place_scenes(seeds: range) -> dict[str, torch.Tensor]:

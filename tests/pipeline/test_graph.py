@@ -201,3 +201,15 @@ def test_a_batch_stage_waits_for_its_inputs_and_batch_stages_come_last():
         Graph((first, _batch("counted"), step, group))
     with pytest.raises(ValueError, match="comes after"):
         Graph((first, step, group, _batch("counted", after=("nowhere",))))
+
+
+def test_a_run_config_s_sections_choose_what_a_run_does(tmp_path):
+    from anchordp3.pipeline.products import GRAPH
+
+    data = ("rollout", "anchors", "render", "features", "write")
+    assert GRAPH.targets(CFG) == data
+    trained = RunConfig.model_validate({**CFG.model_dump(mode="json"), "training": {}, "evaluation": {"train_episodes": 2}})
+    assert GRAPH.targets(trained) == data + ("train-segmenter", "train-classifier", "train-policy", "evaluate", "evaluate-train")
+    with pytest.raises(ValueError, match="train-policy needs the run config's training section"):
+        run_pipeline(CFG, tmp_path / "run", RunOptions(stages=("train-policy",)))
+    assert not (tmp_path / "run").exists()  # refused before anything was made
