@@ -488,7 +488,7 @@ class Runner:
         if not any(queues.values()):
             return
 
-        pools = self._start_pools(enabled)
+        pools = self._start_pools(enabled, most=len(pending) if lone is not None else None)
         in_flight: dict = {}  # ObjectRef → (stage, actor index, [(item id, key, attempt), …])
         load = {s: [0] * len(pools.get(s, [])) for s in self.graph.names}  # calls in flight per actor
         triage = CrashTriage()
@@ -729,21 +729,26 @@ class Runner:
             raise RunAborted(f"stage {s}: {failed} of {n} items failed, above execution.max_failure_ratio="
                              f"{self.cfg.execution.max_failure_ratio}; see `anchordp3 inspect {self.run_dir} {s}`")
 
-    def _start_pools(self, enabled: list[str]) -> dict[str, list]:
+    def _start_pools(self, enabled: list[str], most: int | None = None) -> dict[str, list]:
+        """An actor pool per enabled stage (``most``: at most that many actors in a pool, for a
+        batch stage with fewer items left than workers)."""
         ensure_ray(self.opts.address, self.cfg, self.graph)
         resources = ray.cluster_resources()
         gpus_available = resources.get("GPU", 0) > 0
         def pool(s: str):
             return self.graph[s].pool_of(self.cfg)
 
-        need = sum(pool(s).cpus * (self.opts.workers or pool(s).workers) for s in enabled)
+        def size(s: str) -> int:
+            return min(self.opts.workers or pool(s).workers, most or math.inf)
+
+        need = sum(pool(s).cpus * size(s) for s in enabled)
         if need > resources.get("CPU", 0) + 1e-9:
             raise ValueError(f"execution.pools: the pools reserve {need:g} CPUs but the Ray cluster has {resources.get('CPU', 0):g}; "
                              "lower workers or cpus per stage (actors hold their CPUs for the whole run)")
         pools = {}
         for s in enabled:
             pc = pool(s)
-            n = self.opts.workers or pc.workers
+            n = size(s)
             gpus = pc.gpus if pc.gpus is not None else (1.0 / n if self.graph[s].gpu_share and gpus_available else 0.0)
             if gpus > 0 and not gpus_available:
                 raise ValueError(f"execution.pools.{s}.gpus: {gpus} GPUs asked for, but the Ray cluster has none")
