@@ -19,6 +19,7 @@ does an item comes back with the item's result and is re-emitted here, so the ru
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import math
 import os
@@ -310,10 +311,11 @@ class Runner:
                     self._phase_done("data", t0)
                 else:
                     atomic_write_bytes(self.run_dir / CONFIG_FILE, yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False).encode())
-                for st in self.batches:
+                for phase, stages in itertools.groupby(self.batches, key=lambda st: st.phase):
                     t0 = time.perf_counter()
-                    counts[st.name] = self._run_batch(st)
-                    self._phase_done(st.phase, t0)
+                    for st in stages:
+                        counts[st.name] = self._run_batch(st)
+                    self._phase_done(phase, t0)
                 return counts
         except (OSError, sqlite3.OperationalError) as e:
             if (what := no_space(e, self.run_dir)) is None:

@@ -99,8 +99,9 @@ def training_summary(results: Sequence[Trained]) -> str:
             rows.append([t.name, t.status, f"{t.step}/{t.total_steps}", "", "", ""])
             continue
         info = t.record.payload(ModelInfo) if t.record else None
+        overall = {k: v for k, v in info.metrics.items() if "/" not in k} if info else {}  # per-task ones: metrics.csv
         rows.append([t.name, t.status, info.steps if info else "", info.train_seconds if info else "",
-                     format_metrics(info.metrics) if info else "", t.record.output if t.record else ""])
+                     format_metrics(overall) if info else "", t.record.output if t.record else ""])
     return text_table(["model", "status", "steps", "train s", "validation", "checkpoint"], rows)
 
 
