@@ -74,7 +74,8 @@ def eval_run_config(run_dir: Path | None, models_dir: Path, target: EvaluationCo
     unknown = sorted(set(target.tasks or ()) - set(cfg.tasks))
     if unknown:
         raise ValueError(f"--tasks: {unknown} not among the tasks the models were trained on ({cfg.tasks})")
-    return cfg.model_copy(update={"evaluation": target})
+    section = EvaluationConfig(**{k: getattr(target, k) for k in EvaluationConfig.model_fields})  # EvalOptions' own fields left out
+    return cfg.model_copy(update={"evaluation": section})
 
 
 def evaluated(cfg: RunConfig) -> RunConfig:
