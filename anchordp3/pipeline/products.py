@@ -50,7 +50,7 @@ def _model_fingerprint(name: str):
     def fingerprint(ctx: BatchContext, cfg: RunConfig) -> Fingerprint:
         from anchordp3.pipeline.training import model_fingerprint
 
-        return model_fingerprint(name)(ctx, cfg)
+        return model_fingerprint(ctx, cfg, name)
 
     return fingerprint
 

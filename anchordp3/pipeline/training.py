@@ -170,9 +170,9 @@ def _train(run_dir: Path, name: str, cfg: TrainingConfig, stop_at: int | None) -
         critical_channel=channel.source if channel is not None else None))
 
 
-def model_fingerprint(name: str):
-    """Model ``name``'s train stage fingerprint hook: ``(BatchContext, cfg) -> Fingerprint``."""
-    return lambda ctx, cfg: _fingerprint_of(ctx.run_dir, name, cfg.training)
+def model_fingerprint(ctx: BatchContext, cfg: RunConfig, name: str) -> Fingerprint:
+    """Model ``name``'s train stage fingerprint (``Stage.fingerprint``), from the run's files."""
+    return _fingerprint_of(ctx.run_dir, name, cfg.training)
 
 
 def check_train_stages(ctx: BatchContext, cfg: RunConfig) -> None:

@@ -131,19 +131,23 @@ def test_the_driver_killed_mid_run_then_started_again_resumes_to_the_same_bytes(
 
 def test_twenty_sigkills_of_the_driver_at_random_instants_then_a_resume(cluster, config_file, local_hash, tmp_path):
     rng = random.Random(20)  # the instants are random, and the same on every run of the test
-    kills = 0
+    kills, fresh = 0, 0
+    run = tmp_path / "run0"
     while kills < 20:
-        driver = _driver(config_file, tmp_path, cluster.address)
+        driver = _driver(config_file, run, cluster.address)
         time.sleep(rng.uniform(1.0, 12.0))
         if driver.poll() is not None:  # it finished before this kill: start over on a fresh run directory
-            break
+            assert driver.returncode == 0, driver.stderr.read().decode()[-2000:]
+            assert dataset_content_hash(run) == local_hash
+            fresh += 1
+            run = tmp_path / f"run{fresh}"
+            continue
         os.killpg(driver.pid, signal.SIGKILL)
         driver.wait()
         kills += 1
-    final = _driver(config_file, tmp_path, cluster.address)
+    final = _driver(config_file, run, cluster.address)
     assert final.wait(timeout=900) == 0, final.stderr.read().decode()[-2000:]
-    assert kills == 20
     for s in DATA_STAGES:
-        m = read_manifest(stage_dir(tmp_path, s))
+        m = read_manifest(stage_dir(run, s))
         assert m.complete and m.counts.failed == 0, s
-    assert dataset_content_hash(tmp_path) == local_hash
+    assert dataset_content_hash(run) == local_hash
