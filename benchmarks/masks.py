@@ -27,7 +27,7 @@ from anchordp3.schemas.sim import world_config  # noqa: E402
 from anchordp3.schemas.stages import RenderConfig  # noqa: E402
 from anchordp3.sim.episode import build, run_expert  # noqa: E402
 from anchordp3.sim.frames import observe  # noqa: E402
-from anchordp3.sim.masks import critical_entities  # noqa: E402
+from anchordp3.sim.masks import critical_roles  # noqa: E402
 
 
 def main() -> int:
@@ -44,9 +44,9 @@ def main() -> int:
         raise SystemExit(f"{args.task} seed {args.seed}: the expert failed ({ep.reason}); pick another seed")
     world, task = build(args.task, args.seed, world_cfg, render=True)
     world.settle_and_check()
-    entities = critical_entities(world, task.critical_objects(), include_robot=True)
+    roles = critical_roles(world, task.critical_objects(), include_robot=True)
     methods = {m: RenderConfig(mask_method=m) for m in ("segmentation", "depth_diff")}
-    observe(world, entities, methods["segmentation"])  # warm-up: shader compilation
+    observe(world, roles, methods["segmentation"])  # warm-up: shader compilation
     steps = set(np.linspace(0, len(ep.actions), args.frames).astype(int).tolist())
     times = {m: [] for m in methods}
     agree, critical = [], []
@@ -56,10 +56,10 @@ def main() -> int:
             masks = {}
             for m in order:
                 t0 = time.perf_counter()
-                _, masks[m] = observe(world, entities, methods[m])
+                _, masks[m] = observe(world, roles, methods[m])
                 times[m].append(time.perf_counter() - t0)
             agree.append(float((masks["segmentation"] == masks["depth_diff"]).mean()))
-            critical.append(float(masks["segmentation"].mean()))
+            critical.append(float((masks["segmentation"] > 0).mean()))
         if t < len(ep.actions):
             world.control_step(ep.actions[t])
 

@@ -69,7 +69,7 @@ def episode_matches(cfg, rec, run: Path, k: int | None, z_weight: float) -> tupl
     names = task.critical_objects()
     k = k or len(names)
     layout = StateLayout.of_length(feats["state"].shape[1])
-    points = torch.from_numpy(np.concatenate([feats["points"][..., :3], feats["labels"][..., None].astype(np.float32)], -1))
+    points = torch.from_numpy(np.concatenate([feats["points"][..., :3], (feats["labels"][..., None] > 0).astype(np.float32)], -1))
     tokens = object_tokens(points, torch.from_numpy(feats["state"]), layout, k, z_weight=z_weight)
     centroids, present = token_centroids(tokens)
     out = []

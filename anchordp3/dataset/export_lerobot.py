@@ -17,7 +17,7 @@ How the sparse anchor dataset maps onto LeRobot's time series (also recorded in
   current atomic operation ends (``anchors[0]``), so a LeRobot policy learns frame -> next
   anchor; ``next_anchors (8, 32)``: the whole label horizon;
 - ``observation.points (N, 11)``: the cloud (x, y, z m world; r, g, b in [0, 1]; unit normal;
-  curvature logs); ``points_critical (N,) uint8``: its task-critical labels; ``frame_kind``: 0
+  curvature logs); ``points_critical (N,) uint8``: each point's role (0 not critical, k the task's k-th critical object, 255 the robot); ``frame_kind``: 0
   expert, 1 DAgger, 2 rest;
 - ``observation.images.<view> (H, W, 3)``: each camera's RGB as PNG image features (LeRobot's
   ``image`` dtype, bytes in the parquet), when the run kept its rendered frames;
@@ -384,7 +384,7 @@ class LeRobotWriter:
                             "left ee R[:3,:2] row-major, right ee xyz, right ee R[:3,:2]; grippers 0 closed 1 open; metres, world frame",
             "point_channels": list(POINT_NAMES),
             "points": "x, y, z metres world frame; r, g, b in [0, 1]; unit normal; curvature logs",
-            "points_critical": "1 = point on a task-critical object (from the simulator's masks)",
+            "points_critical": "the point's role from the simulator's masks: 0 not critical, k the task's k-th critical object, 255 the robot",
             "frame_kinds": list(FRAME_KINDS),
             "tasks": "the episode's language instruction; its anchordp3 task, seed and split are the anchordp3/* columns of meta/episodes",
             "anchordp3_tasks": list(self.info.tasks),

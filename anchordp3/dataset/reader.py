@@ -23,7 +23,7 @@ from anchordp3.schemas.dataset import (
     ARRAYS,
     INDEX_FILE,
     INFO_FILE,
-    SCHEMA_VERSION,
+    READABLE_SCHEMA_VERSIONS,
     SPLITS,
     DatasetInfo,
     NormStats,
@@ -217,8 +217,8 @@ def open_dataset(path: str | Path) -> ShardedDataset:
     root = Path(path)
     info = read_dataset_info(root)
     info_path = root / INFO_FILE
-    if info.schema_version != SCHEMA_VERSION:
-        raise ValueError(f"{info_path}: schema version {info.schema_version}, this code reads {SCHEMA_VERSION}")
+    if info.schema_version not in READABLE_SCHEMA_VERSIONS:
+        raise ValueError(f"{info_path}: schema version {info.schema_version}, this code reads {list(READABLE_SCHEMA_VERSIONS)}")
     table = read_table(root / INDEX_FILE, INDEX_SCHEMA)
     index = {name: table.column(name).to_numpy(zero_copy_only=False) for name in table.column_names}
     return ShardedDataset(root, info, index)

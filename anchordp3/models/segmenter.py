@@ -128,9 +128,10 @@ class PointNet2Segmenter(nn.Module):
 
 
 def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor, pos_weight: float | None = None) -> torch.Tensor:
-    """Binary cross-entropy of per-point logits. logits: (B, N); labels: (B, N) {0, 1} any dtype -> scalar."""
+    """Binary cross-entropy of per-point logits: critical or not. logits: (B, N); labels: (B, N)
+    roles, any integer dtype (critical: not 0) -> scalar."""
     weight = None if pos_weight is None else torch.tensor(pos_weight, device=logits.device, dtype=torch.float32)
-    return F.binary_cross_entropy_with_logits(logits.float(), labels.float(), pos_weight=weight)
+    return F.binary_cross_entropy_with_logits(logits.float(), (labels > 0).float(), pos_weight=weight)
 
 
 @dataclass
@@ -145,7 +146,7 @@ class SegmentationCounts:
     tn: int = 0
 
     def add(self, logits: torch.Tensor, labels: torch.Tensor, threshold: float = 0.5) -> SegmentationCounts:
-        """Count one batch. logits: (B, N) raw scores; labels: (B, N) {0, 1}; a point is predicted
+        """Count one batch. logits: (B, N) raw scores; labels: (B, N) roles (critical: not 0); a point is predicted
         critical when sigmoid(logit) > threshold. Returns self."""
         pred = torch.sigmoid(logits.detach().float()) > threshold
         true = labels.detach().bool()

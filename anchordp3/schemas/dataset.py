@@ -15,7 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from anchordp3.schemas.state import StateLayout
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: labels hold roles (0 not critical); 1: labels 0/1, still read (critical: not 0 in both)
+READABLE_SCHEMA_VERSIONS = (1, 2)
 
 POINT_CHANNELS = 11  # x, y, z (m, world), r, g, b in [0, 1], nx, ny, nz (unit), c1, c2 (curvature logs)
 STATE_DIM = StateLayout().dim  # 32 for two 6-DoF arms
@@ -46,10 +47,15 @@ class ArraySpec(BaseModel):
         return tuple(n_points if d == "N" else d for d in self.sample_shape)
 
 
+ROBOT_ROLE = 255  # a point of the robot, critical with ``render.include_robot`` (labels' value)
+MAX_OBJECT_ROLES = 16  # labels 1..16: the task's critical objects, in its order
+
+
 LAYOUT: tuple[ArraySpec, ...] = (
     ArraySpec(name="points", sample_shape=("N", POINT_CHANNELS), dtype="<f4",
               description="Cloud: x,y,z m world; r,g,b in [0,1]; nx,ny,nz unit normal; c1,c2 curvature logs."),
-    ArraySpec(name="labels", sample_shape=("N",), dtype="|u1", description="1 = task-critical point, else 0."),
+    ArraySpec(name="labels", sample_shape=("N",), dtype="|u1",
+              description="The point's role: 0 not task-critical; k the task's k-th critical object (Task.critical_objects() order); 255 the robot (render.include_robot). Critical: not 0."),
     ArraySpec(name="state", sample_shape=(STATE_DIM,), dtype="<f4", description="Robot state at the frame (schemas.state)."),
     ArraySpec(name="anchors", sample_shape=(HORIZON, STATE_DIM), dtype="<f4", description="Next H anchors as states."),
     ArraySpec(name="task_id", sample_shape=(), dtype="<i2", description="Index into DatasetInfo.tasks."),

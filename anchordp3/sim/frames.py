@@ -29,7 +29,7 @@ from anchordp3.schemas.stages import DaggerConfig, RenderConfig
 from anchordp3.sim.cameras import ViewCapture
 from anchordp3.sim.dagger import perturb
 from anchordp3.sim.episode import build
-from anchordp3.sim.masks import critical_entities, depth_diff_masks, segmentation_masks
+from anchordp3.sim.masks import critical_roles, depth_diff_masks, segmentation_masks
 from anchordp3.sim.world import World
 
 
@@ -48,7 +48,7 @@ class FrameRequest:
 
 @dataclass
 class RenderedFrame:
-    """What one frame saw: per-view captures, critical masks ``(V, H, W) uint8``, the robot's
+    """What one frame saw: per-view captures, role masks ``(V, H, W) uint8`` (``sim.masks``), the robot's
     measured ``state (32,)``, whether a DAgger perturbation was actually applied, and the
     episode's own ``episode_state (32,)`` at that step (the state before any perturbation)."""
 
@@ -59,12 +59,12 @@ class RenderedFrame:
     episode_state: np.ndarray
 
 
-def observe(world: World, entities: list, cfg: RenderConfig) -> tuple[list[ViewCapture], np.ndarray]:
-    """Render every view now and the critical-object masks by the configured method."""
-    caps = world.capture(segmentation=cfg.mask_method == "segmentation")
+def observe(world: World, roles: list, cfg: RenderConfig) -> tuple[list[ViewCapture], np.ndarray]:
+    """Render every view now and the critical objects' role masks by the configured method."""
+    caps = world.capture(segmentation=True)
     if cfg.mask_method == "segmentation":
-        return caps, segmentation_masks(caps, entities)
-    return caps, depth_diff_masks(world, caps, entities, cfg.depth_diff_tolerance)
+        return caps, segmentation_masks(caps, roles)
+    return caps, depth_diff_masks(world, caps, roles, cfg.depth_diff_tolerance)
 
 
 def render_frames(task: str, seed: int, world_cfg: WorldConfig, actions: np.ndarray, requests: list[FrameRequest],
@@ -83,12 +83,12 @@ def render_frames(task: str, seed: int, world_cfg: WorldConfig, actions: np.ndar
     world, task_obj = build(task, seed, world_cfg, render=True)
     if physx is None:
         world.settle_and_check()  # a set state needs no settling: it replaces every body's
-    entities = critical_entities(world, task_obj.critical_objects(), cfg.include_robot)
+    roles = critical_roles(world, task_obj.critical_objects(), cfg.include_robot)
     start_targets = world.robot.drive_targets()
-    shadow, shadow_entities = world, entities  # set steps: a perturbation is undone by the next frame's set
+    shadow, shadow_roles = world, roles  # set steps: a perturbation is undone by the next frame's set
     if physx is None and any(r.kind == "dagger" for r in requests):
         shadow, shadow_task = build(task, seed, world_cfg, render=True)
-        shadow_entities = critical_entities(shadow, shadow_task.critical_objects(), cfg.include_robot)
+        shadow_roles = critical_roles(shadow, shadow_task.critical_objects(), cfg.include_robot)
 
     replayed = 0  # control steps the episode's world has executed (replay)
 
@@ -111,16 +111,16 @@ def render_frames(task: str, seed: int, world_cfg: WorldConfig, actions: np.ndar
         at_step(req.t)
         episode_state = world.robot.state()
         if req.kind != "dagger":
-            caps, masks = observe(world, entities, cfg)
+            caps, masks = observe(world, roles, cfg)
             frames.append(RenderedFrame(caps, masks, episode_state, False, episode_state))
         else:
-            frames.append(_render_dagger(world, shadow, shadow_entities, req, cfg, dagger, episode_state))
+            frames.append(_render_dagger(world, shadow, shadow_roles, req, cfg, dagger, episode_state))
         if on_frame:
             on_frame(k)
     return frames
 
 
-def _render_dagger(world: World, shadow: World, entities: list, req: FrameRequest, cfg: RenderConfig, dagger: DaggerConfig,
+def _render_dagger(world: World, shadow: World, roles: list, req: FrameRequest, cfg: RenderConfig, dagger: DaggerConfig,
                    episode_state: np.ndarray) -> RenderedFrame:
     """Copy ``world``'s exact state into ``shadow`` (unless they are one world), perturb it there,
     and observe."""
@@ -130,5 +130,5 @@ def _render_dagger(world: World, shadow: World, entities: list, req: FrameReques
         shadow.unpack(world.pack())
         shadow.robot.restore_drive_targets(world.robot.drive_targets())
     moved = perturb(shadow, req.arm, req.target_state, req.mode, req.seed, dagger)
-    caps, masks = observe(shadow, entities, cfg)
+    caps, masks = observe(shadow, roles, cfg)
     return RenderedFrame(caps, masks, shadow.robot.state(), moved, episode_state)

@@ -28,7 +28,7 @@ from anchordp3.stages.render import load_frames
 
 def frame_cloud(frames: dict[str, np.ndarray], i: int, cfg: FeaturesConfig) -> Cloud:
     """The fused, cropped cloud of frame ``i`` of a rendered-frames file (colours in [0, 1],
-    labels 0/1): inside the workspace box and, with ``table_margin``, above the table top."""
+    labels: roles, 0 not critical): inside the workspace box and, with ``table_margin``, above the table top."""
     box = (np.asarray(cfg.workspace_lo), np.asarray(cfg.workspace_hi))
     views = [backproject(frames["depth"][i, v], frames["K"][i, v], frames["cam2world"][i, v], frames["rgb"][i, v], frames["mask"][i, v], box)
              for v in range(frames["depth"].shape[1])]

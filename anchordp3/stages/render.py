@@ -5,7 +5,8 @@ Input item: a kept episode (rollout arrays) and its frame plan (anchor stage). O
 kept, stored as they are when ``keep_frames: false`` prunes their images once featurised):
 
 - ``rgb (F, V, H, W, 3) uint8``; ``depth (F, V, H, W) float32`` metres, 0 = no hit;
-- ``mask (F, V, H, W) uint8``: 1 on task-critical objects (and the robot, by default);
+- ``mask (F, V, H, W) uint8``: each pixel's role (``sim.masks``): 0 not critical, k the task's k-th
+  critical object, 255 the robot (``include_robot``);
 - ``K (F, V, 3, 3) float64`` OpenCV intrinsics; ``cam2world (F, V, 4, 4) float64``;
 - ``state (F, 32) float32`` the robot state observed (perturbed for DAgger frames);
 - ``anchors (F, H, 32) float32`` labels; ``t (F,) int64``; ``kind (F,) uint8`` (0 expert, 1 DAgger);

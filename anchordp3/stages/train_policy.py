@@ -144,7 +144,7 @@ class PolicyJob(TrainingJob):
         if self.probabilities is not None:
             prob = self.probabilities[batch["index"]].float()
         else:
-            prob = batch["labels"].float()
+            prob = (batch["labels"] > 0).float()  # any role is critical
         points = append_critical_probability(batch["points"], prob)
         out = {"points": points, "state": batch["state"], "anchors": batch["anchors"], "task_id": self.task_lut[batch["task_id"]]}
         return to_device(out, self.device)

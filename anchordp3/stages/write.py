@@ -34,7 +34,9 @@ from anchordp3.schemas.dataset import (
     INFO_FILE,
     INSTRUCTIONS_FILE,
     LAYOUT,
+    MAX_OBJECT_ROLES,
     POINT_CHANNELS,
+    ROBOT_ROLE,
     SCHEMA_VERSION,
     STATE_DIM,
     STATS_ARRAYS,
@@ -91,8 +93,9 @@ def load_features(path: Path) -> dict[str, np.ndarray]:
             raise ValueError(f"{path}: {name} holds NaN or inf")
     if arrays["kind"].size and arrays["kind"].max() >= len(FRAME_KINDS):
         raise ValueError(f"{path}: kind must be a code of {list(FRAME_KINDS)} (0..{len(FRAME_KINDS) - 1})")
-    if arrays["labels"].size and arrays["labels"].max() > 1:
-        raise ValueError(f"{path}: labels must be 0 or 1 (1 = task-critical point)")
+    labels = arrays["labels"]
+    if labels.size and ((labels > MAX_OBJECT_ROLES) & (labels != ROBOT_ROLE)).any():
+        raise ValueError(f"{path}: labels must be roles: 0, a critical object's 1..{MAX_OBJECT_ROLES}, or {ROBOT_ROLE} (the robot)")
     t = arrays["t"]
     if t.size and (t.min() < 0 or t.max() > np.iinfo(np.int32).max):
         raise ValueError(f"{path}: t must be a non-negative control step below 2**31")

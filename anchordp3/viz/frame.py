@@ -31,8 +31,8 @@ def frame_figure(out: Path, points: np.ndarray, colors: np.ndarray, labels: np.n
     """Save a PNG: camera images (critical pixels tinted) on top when given, then the cloud
     coloured by RGB beside the same cloud coloured by label (critical points in orange-red).
 
-    points: (M, 3) metres; colors: (M, 3) in [0, 1]; labels: (M,) 0/1; images: V of (H, W, 3) uint8;
-    masks: V of (H, W) 0/1."""
+    points: (M, 3) metres; colors: (M, 3) in [0, 1]; labels: (M,) roles (critical: not 0); images: V of (H, W, 3) uint8;
+    masks: V of (H, W) roles."""
     n_img = len(images) if images else 0
     fig = plt.figure(figsize=(12, 9.5 if n_img else 5.5), dpi=100)
     grid = fig.add_gridspec(3 if n_img else 1, n_img or 1, height_ratios=[1, 1, 2.6] if n_img else [1])

@@ -107,3 +107,23 @@ def test_empty_shard_in_the_middle_is_skipped(features_dir, tmp_path):
             s = ds[e.start + j]
             assert (s["seed"], s["timestep"]) == (e.seed, f["t"][j])
             assert np.array_equal(s["points"], f["points"][j])
+
+
+def test_a_dataset_of_the_earlier_schema_with_0_1_labels_still_opens_and_a_later_one_is_refused(built, tmp_path):
+    import json
+    import shutil
+
+    from anchordp3.schemas.dataset import INFO_FILE, SCHEMA_VERSION
+
+    root, *_ = built
+    assert json.loads((root / INFO_FILE).read_text())["schema_version"] == SCHEMA_VERSION == 2
+    for version, opens in ((1, True), (3, False)):
+        copy = tmp_path / f"v{version}"
+        shutil.copytree(root, copy)
+        info = json.loads((copy / INFO_FILE).read_text())
+        (copy / INFO_FILE).write_text(json.dumps({**info, "schema_version": version}))
+        if opens:
+            assert len(open_dataset(copy)) == len(open_dataset(root))
+        else:
+            with pytest.raises(ValueError, match="schema version 3, this code reads \\[1, 2\\]"):
+                open_dataset(copy)

@@ -132,3 +132,17 @@ def test_write_config_rejects_bad_values():
     with pytest.raises(ValueError):
         WriteConfig(bogus=1)
     assert plan_tasks(shard_plan(EPISODES, WriteConfig())) == ["place_bell", "stack_blocks_three"]
+
+
+def test_role_labels_are_written_and_labels_that_are_no_role_are_refused_naming_the_file(tmp_path):
+    from anchordp3.schemas.dataset import ROBOT_ROLE
+    from anchordp3.stages.write import load_features
+
+    f = fake_features("stack_blocks_three", 0)
+    f["labels"][1, :4] = [1, 2, 3, ROBOT_ROLE]  # three blocks and the robot
+    save_npz(tmp_path / "ok.npz", f)
+    np.testing.assert_array_equal(load_features(tmp_path / "ok.npz")["labels"], f["labels"])
+    f["labels"][1, 0] = 77
+    save_npz(tmp_path / "bad.npz", f)
+    with pytest.raises(ValueError, match=r"bad\.npz: labels must be roles"):
+        load_features(tmp_path / "bad.npz")

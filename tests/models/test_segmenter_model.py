@@ -136,3 +136,13 @@ def test_overfits_a_few_structured_scenes() -> None:
     assert seen["iou"] > 0.9, seen
     assert unseen["iou"] > 0.8, unseen  # it learnt the structure, not the samples
     assert model.probabilities(points).shape == (4, 256)
+
+
+def test_the_segmenter_learns_critical_or_not_from_role_labels():
+    from anchordp3.models.segmenter import SegmentationCounts, segmentation_loss
+
+    logits = torch.tensor([[4.0, -4.0, 4.0, 4.0]])
+    roles = torch.tensor([[1, 0, 3, 255]], dtype=torch.uint8)  # an object, nothing, another object, the robot
+    assert segmentation_loss(logits, roles) == segmentation_loss(logits, (roles > 0).to(torch.uint8))
+    counts = SegmentationCounts().add(logits, roles)
+    assert (counts.tp, counts.fp, counts.fn, counts.tn) == (3, 0, 0, 1)

@@ -8,6 +8,7 @@ import pytest
 from stage_helpers import FEATURES, FIRST_TASKS
 
 from anchordp3.geometry.features import point_features
+from anchordp3.schemas.dataset import MAX_OBJECT_ROLES, ROBOT_ROLE
 from anchordp3.geometry.reference import reference_features
 from anchordp3.stages.features import frame_cloud, load_features
 from anchordp3.stages.render import load_frames
@@ -19,21 +20,23 @@ def test_each_frame_becomes_n_points_with_11_features_and_labels(staged, task):
     f, frames = load_features(e.features), load_frames(e.frames)
     F, N = len(frames["t"]), FEATURES.n_points
     assert f["points"].shape == (F, N, 11) and f["points"].dtype == np.float32
-    assert f["labels"].shape == (F, N) and set(np.unique(f["labels"])) <= {0, 1}
+    roles = set(range(MAX_OBJECT_ROLES + 1)) | {ROBOT_ROLE}
+    assert f["labels"].shape == (F, N) and set(np.unique(f["labels"]).tolist()) <= roles
     assert np.isfinite(f["points"]).all()
     np.testing.assert_allclose(np.linalg.norm(f["points"][..., 6:9], axis=-1), 1.0, atol=1e-4)
     lo, hi = np.asarray(FEATURES.workspace_lo), np.asarray(FEATURES.workspace_hi)
     assert (f["points"][..., :3] >= lo - 1e-6).all() and (f["points"][..., :3] <= hi + 1e-6).all()
-    assert 0.02 < f["labels"].mean() < 0.95  # the robot and task objects, with the table cropped away
+    assert 0.02 < (f["labels"] > 0).mean() < 0.95  # the robot and task objects, with the table cropped away
     for k in ("state", "anchors", "t", "kind"):
         np.testing.assert_array_equal(f[k], frames[k])
 
 
-def test_critical_labels_come_from_the_rendered_masks(staged):
+def test_role_labels_come_from_the_rendered_masks(staged):
     frames = load_frames(staged["place_mouse"].frames)
     cloud = frame_cloud(frames, 0, FEATURES)
-    n_mask = sum(int(((frames["depth"][0, v] > 0) & (frames["mask"][0, v] == 1)).sum()) for v in range(4))
-    assert 0 < int(cloud.labels.sum()) <= n_mask
+    for role in np.unique(frames["mask"][0]).tolist():
+        n_mask = sum(int(((frames["depth"][0, v] > 0) & (frames["mask"][0, v] == role)).sum()) for v in range(4))
+        assert 0 < int((cloud.labels == role).sum()) <= n_mask or role == 0
 
 
 def test_fast_features_equal_the_whole_cloud_reference_on_a_rendered_frame(staged):
@@ -58,3 +61,10 @@ def test_the_table_is_cropped_away_unless_asked_to_keep_it(staged):
     cropped = frame_cloud(frames, 0, FEATURES)
     assert len(cropped.points) > 0 and (cropped.points[:, 2] > top + FEATURES.table_margin).all()
     assert cropped.labels.mean() > 1.5 * whole.labels.mean()  # the critical objects' share grows
+
+
+@pytest.mark.parametrize("task", ["stack_blocks_three", "blocks_ranking_rgb"])
+def test_a_task_with_several_critical_objects_labels_each_with_a_role_of_its_own(staged, task):
+    labels = load_features(staged[task].features)["labels"]
+    objects = {r for r in np.unique(labels).tolist() if 1 <= r <= MAX_OBJECT_ROLES}
+    assert len(objects) >= 3, objects  # the three blocks, told apart

@@ -13,7 +13,7 @@ from stage_helpers import ANCHORS, FIRST_TASKS, SMALL_WORLD, stage_episode
 from anchordp3.schemas.stages import RenderConfig
 from anchordp3.sim.episode import build
 from anchordp3.sim.frames import FrameRequest, render_frames
-from anchordp3.sim.masks import critical_entities, segmentation_masks
+from anchordp3.sim.masks import ROBOT_ROLE, critical_roles, segmentation_masks
 from anchordp3.stages.anchors import load_plan
 from anchordp3.stages.render import AUDIT_ARRAYS, load_frames, prune_frames
 from anchordp3.stages.rollout import load_episode
@@ -30,7 +30,7 @@ def test_every_planned_frame_is_rendered_from_four_views(staged, task):
     np.testing.assert_array_equal(frames["t"], plan.t)
     np.testing.assert_array_equal(frames["anchors"], plan.anchors)
     assert list(frames["views"]) == ["head", "front", "left_wrist", "right_wrist"]
-    assert 0.005 < frames["mask"].mean() < 0.5  # something, not everything, is critical
+    assert 0.005 < (frames["mask"] > 0).mean() < 0.5  # something, not everything, is critical
 
 
 def test_expert_frames_observe_the_recorded_states(staged):
@@ -98,21 +98,26 @@ def test_segmentation_and_depth_difference_masks_agree(tmp_path, staged):
     assert agree > 0.999, agree
 
 
-def test_masks_mark_the_critical_objects_and_the_robot_only():
-    world, task = build("place_mouse", 1, SMALL_WORLD, render=True)
+@pytest.mark.parametrize("task_name", ["place_mouse", "blocks_ranking_rgb"])
+def test_masks_label_each_critical_object_with_its_role_the_robot_apart_and_nothing_else(task_name):
+    world, task = build(task_name, 1, SMALL_WORLD, render=True)
     world.settle_and_check()
     caps = world.capture()
-    ents = critical_entities(world, task.critical_objects(), include_robot=True)
-    masks = segmentation_masks(caps, ents)
-    critical_ids = {x.per_scene_id for x in ents}
-    clutter_ids = {world.objects[n].per_scene_id for n in world.objects if n not in task.critical_objects()}
+    roles = critical_roles(world, task.critical_objects(), include_robot=True)
+    masks = segmentation_masks(caps, roles)
+    role_of = {e.per_scene_id: role for role, ents in roles for e in ents}
+    names = task.critical_objects()
+    assert [r for r, _ in roles] == list(range(1, len(names) + 1)) + [ROBOT_ROLE]
     for c, m in zip(caps, masks):
-        seen = set(np.unique(c.segmentation[m.astype(bool)]).tolist())
-        assert seen <= critical_ids and not seen & clutter_ids
+        for seg_id in np.unique(c.segmentation):
+            assert set(np.unique(m[c.segmentation == seg_id]).tolist()) == {role_of.get(int(seg_id), 0)}
     head = caps[0].segmentation
-    assert all((head == world.objects[n].per_scene_id).any() for n in task.critical_objects() if n in world.objects)
-    robot_only = segmentation_masks(caps, critical_entities(world, [], include_robot=True))
-    assert 0 < robot_only.sum() < masks.sum()
+    seen = set(np.unique(masks[0]).tolist())
+    for k, n in enumerate(names):  # every critical object in view carries its own role, in the task's order
+        if n in world.objects and (head == world.objects[n].per_scene_id).any():
+            assert k + 1 in seen
+    robot_only = segmentation_masks(caps, critical_roles(world, [], include_robot=True))
+    assert set(np.unique(robot_only).tolist()) == {0, ROBOT_ROLE} and (robot_only > 0).sum() < (masks > 0).sum()
 
 
 def test_rendering_an_episode_twice_gives_the_same_bytes(tmp_path, staged):
