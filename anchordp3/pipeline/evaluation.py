@@ -82,12 +82,8 @@ def evaluated(cfg: RunConfig) -> RunConfig:
     """The run config of the evaluation's scenes: the tasks and preset its ``evaluation`` section
     names (default: the run's)."""
     ev = cfg.evaluation
-    update: dict = {"evaluation": ev}
-    if ev.tasks:
-        update["tasks"] = list(ev.tasks)
-    if ev.preset:
-        update["preset"] = ev.preset
-    return RunConfig.model_validate({**cfg.model_dump(mode="json"), **update, "evaluation": ev.model_dump(mode="json")})
+    data = cfg.model_dump(mode="json")
+    return RunConfig.model_validate({**data, "tasks": list(ev.tasks or data["tasks"]), "preset": ev.preset or data["preset"]})
 
 
 def selected_seeds(cfg: RunConfig, opts: EvaluationConfig) -> list[int]:
@@ -194,9 +190,10 @@ def check_evaluation(ctx: BatchContext, cfg: RunConfig) -> None:
         return
     fp = evaluation_fingerprint(ctx, cfg)
     stored = read_summary(ctx.folder) if ctx.folder.is_dir() and has_manifest(ctx.folder) else None
-    if stored is not None and ctx.refuses(stored.fingerprint.changes(fp)):
+    changes = stored.fingerprint.changes(fp) if stored is not None else []
+    if ctx.refuses(changes):
         raise StaleStageError(f"--out: {ctx.folder} holds an evaluation of other models, settings or code "
-                              f"({', '.join(stored.fingerprint.changes(fp))} changed); give another folder, or --force to start over")
+                              f"({', '.join(changes)} changed); give another folder, or --force to start over")
 
 
 _MODELS: dict = {}  # (models folder, device, DDIM steps, samples) -> EvalModels: loaded once per worker

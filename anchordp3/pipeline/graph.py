@@ -82,10 +82,14 @@ class BatchContext:
     force: bool = False
     keep_outputs: bool = False
 
+    def keeps(self, changes: list[str]) -> bool:
+        """Whether outputs made under a fingerprint with these ``changes`` are kept as they are:
+        ``keep_outputs`` keeps a change of code alone, unless ``force`` redoes it."""
+        return changes == ["code"] and self.keep_outputs and not self.force
+
     def refuses(self, changes: list[str]) -> bool:
-        """Whether outputs made under a fingerprint with these ``changes`` are refused (not
-        redone with ``force``, not kept as ``keep_outputs`` keeps a change of code alone)."""
-        return bool(changes) and not self.force and not (self.keep_outputs and changes == ["code"])
+        """Whether such outputs are refused: changed, neither redone (``force``) nor kept."""
+        return bool(changes) and not self.force and not self.keeps(changes)
 
 
 @dataclass(frozen=True)

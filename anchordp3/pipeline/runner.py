@@ -37,7 +37,6 @@ import yaml
 import anchordp3
 from anchordp3.logs import replay, to_file
 from anchordp3.pipeline.actors import FAULTS_ENV, NO_SPACE, ItemResult, StageWorker, one_line
-from anchordp3.pipeline.codehash import code_hash
 from anchordp3.pipeline.graph import (
     CONFIG_FILE,
     BatchContext,
@@ -56,7 +55,7 @@ from anchordp3.pipeline.reaper import watch_local_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_summary
 from anchordp3.schemas.episode import episode_id
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
-from anchordp3.schemas.run import RunConfig, config_hash
+from anchordp3.schemas.run import RunConfig
 from anchordp3.stages.files import atomic_write_bytes, no_space, sweep_interrupted_writes
 
 log = logging.getLogger(__name__)
@@ -300,8 +299,10 @@ class Runner:
 
     # ----------------------------------------------------------------------------- the run
     def run(self) -> dict:
+        checked = set()  # a hook several stages share (the train stages') checks them all at once
         for st in self.batches:  # refusals that would otherwise come after the stages before them ran
-            if st.check is not None:
+            if st.check is not None and st.check not in checked:
+                checked.add(st.check)
                 st.check(self._context(st), self.cfg)
         try:
             with RunLock(self.run_dir), to_file(self.run_dir / LOG_FILE):
@@ -370,7 +371,7 @@ class Runner:
         fp = st.fingerprint(ctx, self.cfg)
         stored = read_summary(ctx.folder) if ctx.folder.is_dir() else None
         changed = stored.fingerprint.changes(fp) if stored is not None else []
-        keep = bool(changed) and ctx.keep_outputs and changed == ["code"] and not ctx.force
+        keep = ctx.keeps(changed)
         if ctx.refuses(changed):
             raise StaleStageError(f"{ctx.folder}: made with another {', '.join(changed)} than now (stage {st.name}); "
                                   f"rerun with --force to redo it{', or --keep-outputs to keep it' if changed == ['code'] else ''}")

@@ -176,15 +176,11 @@ def model_fingerprint(ctx: BatchContext, cfg: RunConfig, name: str) -> Fingerpri
 
 
 def check_train_stages(ctx: BatchContext, cfg: RunConfig) -> None:
-    """The train stages' up-front refusals (``check_training``) for the models this call trains."""
+    """What training the models of this call's train stages would refuse only later, refused
+    before anything runs (the train stages' one ``check``): a dataset of other tasks than the run
+    config's, and ``_preflight``'s refusals."""
     names = [n for n in MODELS if stage_name(n) in ctx.stages]
-    check_training(ctx.run_dir, cfg.training, names, ctx.force, ctx.keep_outputs)
-
-
-def check_training(run_dir: Path, cfg: TrainingConfig, names: Sequence[str], force: bool, keep_outputs: bool = False) -> None:
-    """What training ``names`` would refuse only later, refused before anything runs: a dataset of
-    other tasks than the run config's, and ``_preflight``'s refusals."""
-    run_dir = Path(run_dir)
+    run_dir = Path(ctx.run_dir)
     if any(n != "classifier" for n in names) and (stage_dir(run_dir, "write") / INFO_FILE).is_file():
         run_cfg = load_run_config(run_dir / CONFIG_FILE)
         data = open_dataset(stage_dir(run_dir, "write"))
@@ -194,7 +190,7 @@ def check_training(run_dir: Path, cfg: TrainingConfig, names: Sequence[str], for
             data.close()
         if missing:
             raise ValueError(f"{stage_dir(run_dir, 'write')}: dataset tasks {missing} are not in the run config's tasks")
-    _preflight(run_dir, names, cfg, force, keep_outputs)
+    _preflight(run_dir, names, cfg.training, ctx)
 
 
 def _open_run_dataset(run_dir: Path) -> ShardedDataset:
@@ -204,7 +200,7 @@ def _open_run_dataset(run_dir: Path) -> ShardedDataset:
     return open_dataset(d)
 
 
-def _preflight(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: bool, keep_outputs: bool = False) -> None:
+def _preflight(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, ctx: BatchContext) -> None:
     """Refuse at once what training ``names`` would refuse only after training the models before
     it: a model trained with another config, code or data (without ``force``), a policy on top of a
     segmenter this call retrains, and a policy whose ``label_channel: auto`` finds no segmenter
@@ -222,17 +218,15 @@ def _preflight(run_dir: Path, names: Sequence[str], cfg: TrainingConfig, force: 
         d = model_dir(run_dir, name)
         stored = read_manifest(d) if d.is_dir() else None
         if name == "policy":
-            if "segmenter" in retrained and stored is not None and stored.complete and not force:
+            if "segmenter" in retrained and stored is not None and stored.complete and not ctx.force:
                 raise ValueError(f"{d}: trained on the segmenter this call trains anew; pass --force to retrain it too")
             if "segmenter" in retrained:
                 continue  # its fingerprint depends on the segmenter to come
         fp = _fingerprint_of(run_dir, name, cfg)
         changes = stored.fingerprint.changes(fp) if stored is not None else []
-        if changes and not (keep_outputs and changes == ["code"] and not force):
-            if not force:
-                raise _stale(d, stored.fingerprint, fp)
-            retrained.add(name)
-        elif stored is None or not stored.complete:
+        if ctx.refuses(changes):
+            raise _stale(d, stored.fingerprint, fp)
+        if (changes and not ctx.keeps(changes)) or stored is None or not stored.complete:
             retrained.add(name)
 
 

@@ -42,11 +42,6 @@ class PoolsConfig(PartialSections):
     features: PoolConfig = Field(default_factory=PoolConfig, description="Point-cloud features.")
     write: PoolConfig = Field(default_factory=lambda: PoolConfig(cpus=0.5), description="Shard writers.")
 
-    def of(self, stage: str, default: PoolConfig | None = None) -> PoolConfig:
-        """The pool of ``stage``; a stage without a field here (e.g. a synthetic one) gets ``default``
-        (its declared resources), else the default pool."""
-        return getattr(self, stage, None) or default or PoolConfig()
-
 
 class ExecutionConfig(BaseModel):
     """How the run is executed: retries, failure tolerance, in-flight bound."""

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from itertools import pairwise
 from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from anchordp3.schemas.sections import PartialSections, overlay
 from anchordp3.schemas.tasks import TASK_NAMES, task_id
