@@ -34,7 +34,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from anchordp3.models.encoders import append_critical_probability  # noqa: E402
 from anchordp3.models.objects import token_centroids  # noqa: E402
 from anchordp3.pipeline.evaluation import eval_run_config, models_folder  # noqa: E402
 from anchordp3.schemas.evaluation import EvalOptions  # noqa: E402
@@ -66,9 +65,7 @@ class ReleaseWatch:
         policy = self.models.policy
         if policy.anchor_gates is None:
             return "-", None
-        pts = torch.from_numpy(points.astype(np.float32))[None]
-        obs = {"points": append_critical_probability(pts, self.models.segmenter.probabilities(pts)),
-               "state": torch.from_numpy(state.astype(np.float32))[None], "task_id": torch.tensor([self.task_id])}
+        obs = self.models.observation(points, state, self.task_id)
         with torch.no_grad():
             cond, tokens = policy._condition(obs)
             cls = int(policy.gate_logits(cond)[0, 0, ARMS.index(arm)].argmax())

@@ -27,6 +27,11 @@ orientation features are the cluster's xy second moments, ``((cxx - cyy), 2 cxy)
 ``anisotropy x (cos 2θ, sin 2θ)`` for a principal axis at yaw θ (π-periodic, as the axis is), zero
 for a round object, turning by 2φ when the scene turns by φ and unchanged when it moves.
 
+Where the points carry roles (the segmenter's role head, or the simulator's labels: a point's
+object's place in the task's ``critical_objects()``), steps 1-4 give way to the roles: token j is
+role j + 1's points, in the same place in every frame and scene (k-means tokens of three alike
+blocks come out in another order each time, ladder rung D3).
+
 Everything is batched tensor arithmetic (no randomness, no Python loop over samples), so it runs
 inside the policy's forward pass, after augmentation, at training and at inference alike.
 """
@@ -92,20 +97,29 @@ def cluster_critical_points(xyz: torch.Tensor, critical: torch.Tensor, k: int,
 
 
 def object_tokens(points: torch.Tensor, state: torch.Tensor, layout: StateLayout, k: int,
-                  threshold: float = 0.5, orientation: bool = False, z_weight: float = 1.0) -> torch.Tensor:
+                  threshold: float = 0.5, orientation: bool = False, z_weight: float = 1.0,
+                  roles: torch.Tensor | None = None) -> torch.Tensor:
     """The K critical-object tokens of each observation.
 
     points: (B, N, C) in data units, xyz (metres) first and the critical probability last;
-    state: (B, D) in data units. Returns (B, k, token_features(orientation)) float32: per cluster
-    (largest first) its centroid, the centroid minus each arm's end effector (``ARMS`` order), the
-    per-axis spread, the top (highest z) minus the centroid's z, all x their scales, its share of
-    the critical points and, with ``orientation``, its principal axis in the table plane as
-    anisotropy x (cos 2θ, sin 2θ) (module docstring). ``z_weight``: as ``cluster_critical_points``.
-    A cloud without critical points gives zero tokens."""
+    state: (B, D) in data units. Returns (B, k, token_features(orientation)) float32: per object
+    its centroid, the centroid minus each arm's end effector (``ARMS`` order), the per-axis spread,
+    the top (highest z) minus the centroid's z, all x their scales, its share of the critical
+    points and, with ``orientation``, its principal axis in the table plane as anisotropy x
+    (cos 2θ, sin 2θ) (module docstring). The objects: without ``roles``, the k clusters of the
+    points whose probability is above ``threshold``, largest first (``cluster_critical_points``,
+    ``z_weight`` as there); with ``roles (B, N)`` integer (0 none), token j is the points of role
+    j + 1, so each token keeps its object from frame to frame and scene to scene. An object
+    without points gives a zero token."""
     xyz = points[..., :3].float()
-    critical = points[..., -1] > threshold
-    assign, _ = cluster_critical_points(xyz, critical, k, z_weight)
-    member = torch.nn.functional.one_hot(assign, k).float() * critical[..., None].float()  # (B, N, k)
+    if roles is None:
+        critical = points[..., -1] > threshold
+        assign, _ = cluster_critical_points(xyz, critical, k, z_weight)
+        member = torch.nn.functional.one_hot(assign, k).float() * critical[..., None].float()  # (B, N, k)
+    else:
+        roles = roles.to(xyz.device).long()
+        critical = roles > 0
+        member = (roles[..., None] == torch.arange(1, k + 1, device=xyz.device)).float()  # (B, N, k)
     count = member.sum(1)  # (B, k)
     safe = count.clamp(min=1)[..., None]
     centroid = torch.einsum("bnk,bnc->bkc", member, xyz) / safe

@@ -64,7 +64,8 @@ class AnchorDiffusionPolicy(nn.Module):
 
     Batches (``compute_loss``) and observations (``predict``) are dicts of tensors:
     ``points (B, N, point_channels)`` float32, ``state (B, action_dim)`` float32, ``task_id (B,)``
-    long, and for training ``anchors (B, horizon, action_dim)`` float32, all in data units.
+    long, with role tokens ``roles (B, N)`` integer (each point's role, 0 none), and for training
+    ``anchors (B, horizon, action_dim)`` float32, all in data units.
     """
 
     def __init__(self, config: PolicyConfig | None = None, mixed_precision: bool = True) -> None:
@@ -133,8 +134,8 @@ class AnchorDiffusionPolicy(nn.Module):
         parts = [self.point_encoder(self.point_normalizer(points), task_id), self.state_encoder(self.state_normalizer(state))]
         tokens = None
         if self.object_encoder is not None:
-            tokens = object_tokens(points, state, self.layout, self.objects.tokens,
-                                   orientation=self.objects.orientation, z_weight=self.objects.z_weight)
+            tokens = object_tokens(points, state, self.layout, self.objects.tokens, orientation=self.objects.orientation,
+                                   z_weight=self.objects.z_weight, roles=self._roles(obs))
             parts.append(self.object_encoder(tokens.to(parts[0].dtype)))
         return torch.cat(parts, dim=-1), tokens
 
@@ -305,6 +306,14 @@ class AnchorDiffusionPolicy(nn.Module):
         if state.ndim != 2 or state.shape != (points.shape[0], self.config.action_dim):
             raise ValueError(f"state: expected ({points.shape[0]}, {self.config.action_dim}), got {tuple(state.shape)}")
         return points, state, task_id
+
+    def _roles(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
+        """``obs["roles"] (B, N)`` (each point's role, 0 none) where the object head's tokens are roles, else None."""
+        if self.objects.source != "roles":
+            return None
+        if obs.get("roles") is None:
+            raise KeyError("observation: missing 'roles' (each point's role), needed by policy.model.objects.source 'roles'")
+        return torch.as_tensor(obs["roles"], device=self.device)
 
     def _check_anchors(self, anchors: torch.Tensor) -> None:
         want = (self.config.horizon, self.config.action_dim)

@@ -2,7 +2,8 @@
 
 A stage's fingerprint covers the source of its entry module (``anchordp3.stages.render`` for
 the render stage) and of every package module that one imports, directly or not, at the top or
-inside a function (found by reading the import statements, not by importing). Each module
+inside a function (found by reading the import statements, not by importing), and of every module
+of a package whose ``__init__`` imports them all by listing them (a registry of plug-ins: the tasks). Each module
 counts by its syntax tree with docstrings left out, so editing a comment, a docstring or the
 layout changes nothing, while any change to what the code does changes the hash and so marks
 the stage's outputs as made by other code.
@@ -51,7 +52,17 @@ def imported_modules(name: str, tree: ast.Module, root: Path) -> set[str]:
                 base = ".".join(anchor + ([base] if base else []))
             found.add(base)
             found.update(f"{base}.{a.name}" for a in node.names)  # `from pkg import module`
+    if is_package and imports_every_module(tree):
+        found.update(f"{name}.{p.stem}" for p in module_path(name, root).parent.iterdir()
+                     if p.suffix == ".py" and p.stem != "__init__" or (p / "__init__.py").is_file())
     return {m for m in found if m.split(".")[0] == PACKAGE and module_path(m, root) is not None}
+
+
+def imports_every_module(tree: ast.Module) -> bool:
+    """Whether a package's ``__init__`` imports all its modules by listing them
+    (``pkgutil.iter_modules(__path__)``, a registry's plug-ins: the task classes of ``sim/tasks``),
+    imports no statement names."""
+    return any(isinstance(node, ast.Attribute) and node.attr == "iter_modules" for node in ast.walk(tree))
 
 
 _BLOCKS = ("body", "orelse", "finalbody", "handlers", "cases")  # the fields of a node that hold statements

@@ -18,6 +18,7 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import ConfigDict, Field, model_validator
 
+from anchordp3.schemas.dataset import MAX_OBJECT_ROLES
 from anchordp3.schemas.sections import PartialSections, overlay
 from anchordp3.schemas.tasks import TASK_NAMES, task_id
 
@@ -95,7 +96,8 @@ class SetAbstractionConfig(_Config):
 
 
 class SegmenterConfig(_Config):
-    """Lightweight PointNet++: (B, N, 11) points -> (B, N) task-critical logits."""
+    """Lightweight PointNet++: (B, N, 11) points -> (B, N) task-critical logits, or (B, N, roles + 1)
+    logits of each point's role."""
 
     in_channels: int = Field(default=11, ge=3, description="Per-point input channels; the first 3 are xyz in metres.")
     set_abstraction: tuple[SetAbstractionConfig, ...] = Field(
@@ -114,6 +116,11 @@ class SegmenterConfig(_Config):
     )
     head_hidden: int = Field(default=64, ge=1, description="Hidden width of the per-point classification head.")
     dropout: float = Field(default=0.0, ge=0, lt=1, description="Dropout before the head's last layer.")
+    roles: int = Field(
+        default=0, ge=0, le=MAX_OBJECT_ROLES,
+        description="0: one logit per point, critical or not. R > 0: R + 1 classes per point, none or the "
+                    "critical object of role 1..R (its place in the task's critical_objects(), as the data's labels "
+                    "hold it), trained by cross-entropy; 'critical' is any role (models.segmenter).")
 
     @model_validator(mode="after")
     def _levels_match(self) -> SegmenterConfig:
@@ -251,8 +258,15 @@ class ObjectHeadConfig(_Config):
 
     tokens: int = Field(
         default=2, ge=1, le=8,
-        description="Critical-object tokens: the critical points clustered into this many objects (k-means, largest "
-                    "first), each summarised by its centroid, its offset from each end effector, its spread and size.")
+        description="Critical-object tokens, each summarised by its centroid, its offset from each end effector, its "
+                    "spread and size: the critical points clustered into this many objects (source 'clusters'), or "
+                    "the points of roles 1..tokens (source 'roles').")
+    source: Literal["clusters", "roles"] = Field(
+        default="clusters",
+        description="What makes a token: 'clusters', k-means of the critical points, largest first (rung 8); 'roles', "
+                    "the points of one role each, in the task's order of critical objects (the red block, the "
+                    "green, the blue, the target), from the segmenter's role head (segmenter.model.roles >= tokens) "
+                    "or the simulator's labels (ladder rung D4).")
     orientation: bool = Field(
         default=False,
         description="Each token also carries the direction of its points' principal axis in the table plane, "
@@ -306,6 +320,8 @@ class ObjectHeadConfig(_Config):
             raise ValueError("held_destination: needs held_offsets")
         if self.stay_radius and not self.anchored_offsets:
             raise ValueError("stay_radius: needs anchored_offsets")
+        if self.source == "roles" and self.z_weight != 1.0:
+            raise ValueError("z_weight: a clustering setting; tokens of source 'roles' are not clustered")
         return self
 
     @property

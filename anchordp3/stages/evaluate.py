@@ -115,6 +115,10 @@ class EvalModels:
         self.segmenter = load_segmenter(d / "segmenter" / "model.pt", self.device)
         self.classifier = load_classifier(d / "classifier" / "model.pt", self.device)
         self.policy = load_policy(d / "policy" / "model.pt", self.device, ema=True)
+        objects = self.policy.config.objects
+        if objects is not None and objects.source == "roles" and self.segmenter.config.roles < objects.tokens:
+            raise ValueError(f"{d / 'segmenter'}: {self.segmenter.config.roles} roles, but the policy's tokens are "
+                             f"roles 1..{objects.tokens} (policy.model.objects.source 'roles')")
         self.policy.unet.freeze()  # evaluation never changes the weights
         self.ddim_steps = ddim_steps  # None: the policy's own
         self.samples = samples
@@ -126,13 +130,19 @@ class EvalModels:
     @torch.inference_mode()  # no autograd bookkeeping at all: 8 % off a CPU decision (49 -> 45 ms), same anchors
     def anchors(self, points: np.ndarray, state: np.ndarray, task: int, noise_seed: int) -> np.ndarray:
         """``points (N, 11)``, ``state (32,)`` → the predicted next anchors ``(H, 32)``."""
-        pts = torch.from_numpy(np.asarray(points, dtype=np.float32))[None].to(self.device)
-        prob = self.segmenter.probabilities(pts)
-        obs = {"points": append_critical_probability(pts, prob),
-               "state": torch.from_numpy(np.asarray(state, dtype=np.float32))[None].to(self.device),
-               "task_id": torch.tensor([task], dtype=torch.long, device=self.device)}
         gen = torch.Generator().manual_seed(noise_seed)
+        obs = self.observation(points, state, task)
         return self.policy.predict(obs, generator=gen, steps=self.ddim_steps, samples=self.samples)[0].cpu().numpy()
+
+    def observation(self, points: np.ndarray, state: np.ndarray, task: int) -> dict[str, torch.Tensor]:
+        """``points (N, 11)``, ``state (32,)``, model task id -> the policy's one-sample observation: the
+        points with the segmenter's critical probability, each point's role (None without a role
+        head), the state and the task."""
+        pts = torch.from_numpy(np.asarray(points, dtype=np.float32))[None].to(self.device)
+        prob, roles = self.segmenter.predict(pts)
+        return {"points": append_critical_probability(pts, prob), "roles": roles,
+                "state": torch.from_numpy(np.asarray(state, dtype=np.float32))[None].to(self.device),
+                "task_id": torch.tensor([task], dtype=torch.long, device=self.device)}
 
 
 def frames_dict(obs: Observation) -> dict[str, np.ndarray]:

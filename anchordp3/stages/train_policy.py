@@ -1,8 +1,9 @@
 """Train the anchor diffusion policy: one frame (points, state, task) -> the next H anchors.
 
 Input points get a 12th channel, the critical-object probability: the trained segmenter's
-prediction (computed once for every sample and cached in ``critical_prob-<checksum>.npy``) or the
-simulator's label. The dataset's task ids map to model task ids (``model_task_ids``), so each task
+prediction (computed once for every sample and cached in ``critical_prob-<checksum>.npy``, with its
+role head each point's role as well, ``roles-<checksum>.npy``) or the simulator's label (which is
+the role). The dataset's task ids map to model task ids (``model_task_ids``), so each task
 trains its own point encoder. Normalizers (state, anchors, points) are fitted from the dataset's
 min/max statistics and travel in the checkpoint. AdamW with warm-up and cosine decay; EMA of the
 weights after every step; validation with the EMA weights on the validation split: the diffusion
@@ -67,17 +68,29 @@ class CriticalChannel:
     checksum: str | None = None
 
 
-def critical_probabilities(data: ShardedDataset, segmenter_path: Path, device: torch.device, batch_size: int = 32) -> np.ndarray:
-    """The segmenter's critical probability of every point of every sample: ``(samples, N) float16``
-    indexed by global sample index (both splits)."""
+def critical_probabilities(data: ShardedDataset, segmenter_path: Path, device: torch.device,
+                           batch_size: int = 32) -> tuple[np.ndarray, np.ndarray | None]:
+    """The segmenter's critical probability of every point of every sample, ``(samples, N) float16``
+    indexed by global sample index (both splits), and with its role head each point's role
+    ``(samples, N) uint8`` (else None)."""
     model = load_segmenter(segmenter_path, device)
     ds = SplitDataset(data, None, keys=("points",))
     out = np.zeros((len(data), data.info.n_points), dtype=np.float16)
+    roles = np.zeros((len(data), data.info.n_points), dtype=np.uint8) if model.config.roles else None
     for batch in eval_batches(ds, batch_size):
-        probs = model.probabilities(batch["points"].to(device))
+        probs, role = model.predict(batch["points"].to(device))
         out[batch["index"].numpy()] = probs.cpu().numpy().astype(np.float16)
+        if roles is not None:
+            roles[batch["index"].numpy()] = role.cpu().numpy()
     log.info(f"policy: segmenter probabilities of {len(ds)} samples computed (mean {float(out.mean()):.3f})")
-    return out
+    return out, roles
+
+
+def _save_array(path: Path, array: np.ndarray) -> None:
+    """``array`` as ``path`` (.npy), written crash-safe."""
+    buf = io.BytesIO()
+    np.save(buf, array)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def delta_limits(data: ShardedDataset, batch_size: int = 256) -> dict[str, list]:
@@ -101,12 +114,17 @@ class PolicyJob(TrainingJob):
     name = KIND
 
     def __init__(self, data: ShardedDataset, config: TrainingConfig, device: torch.device,
-                 channel: CriticalChannel, probabilities: np.ndarray | None = None) -> None:
+                 channel: CriticalChannel, probabilities: np.ndarray | None = None, roles: np.ndarray | None = None) -> None:
         self.cfg, self.device, self.data, self.channel = config.policy, device, data, channel
         self.seed, self.loop = config.seed, config.loop
         if channel.source == "segmenter" and probabilities is None:
             raise ValueError("policy: the segmenter channel needs the precomputed probabilities")
+        objects = self.cfg.model.objects
+        if objects is not None and objects.source == "roles" and channel.source == "segmenter" and roles is None:
+            raise ValueError(f"policy.model.objects.source: 'roles', but the segmenter {channel.path} has no role head; "
+                             "train it with segmenter.model.roles set (or label_channel: ground_truth)")
         self.probabilities = None if probabilities is None else torch.from_numpy(probabilities)
+        self.roles = None if roles is None else torch.from_numpy(roles)
         self.task_lut = torch.tensor(model_task_ids(data.tasks), dtype=torch.long)
         if int(self.task_lut.max()) >= self.cfg.model.num_tasks:
             raise ValueError(f"policy.model.num_tasks: {self.cfg.model.num_tasks} encoders, but the dataset's tasks "
@@ -140,13 +158,17 @@ class PolicyJob(TrainingJob):
 
     def observation(self, batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """A loader batch -> the policy's batch on the device: ``points (B, N, 12)`` (features +
-        critical probability), ``state (B, 32)``, ``task_id (B,)`` model ids, ``anchors (B, H, 32)``."""
+        critical probability), ``roles (B, N)`` (each point's role: the segmenter's, or the label),
+        ``state (B, 32)``, ``task_id (B,)`` model ids, ``anchors (B, H, 32)``."""
         if self.probabilities is not None:
             prob = self.probabilities[batch["index"]].float()
+            roles = self.roles[batch["index"]] if self.roles is not None else (prob > 0.5).to(torch.uint8)
         else:
             prob = (batch["labels"] > 0).float()  # any role is critical
+            roles = batch["labels"]
         points = append_critical_probability(batch["points"], prob)
-        out = {"points": points, "state": batch["state"], "anchors": batch["anchors"], "task_id": self.task_lut[batch["task_id"]]}
+        out = {"points": points, "roles": roles, "state": batch["state"], "anchors": batch["anchors"],
+               "task_id": self.task_lut[batch["task_id"]]}
         return to_device(out, self.device)
 
     def batches(self, start_step: int) -> Iterator[dict[str, torch.Tensor]]:
@@ -272,19 +294,20 @@ def train_policy(data: ShardedDataset, config: TrainingConfig, out_dir: Path, de
     """Train (or resume) the policy on ``data`` into ``out_dir`` (see ``run_training``), the 12th
     point channel from ``channel``."""
     out_dir = Path(out_dir)
-    probabilities = None
+    probabilities = roles = None
     if channel.source == "segmenter":
         if channel.path is None or channel.checksum is None:
             raise ValueError("policy: the segmenter channel needs the segmenter's model.pt and its checksum")
-        cache = out_dir / f"critical_prob-{channel.checksum[:12]}.npy"
-        if cache.is_file():
-            probabilities = np.load(cache)
-        else:
-            probabilities = critical_probabilities(data, channel.path, device)
-            buf = io.BytesIO()
-            np.save(buf, probabilities)
-            atomic_write_bytes(cache, buf.getvalue())
-    job = PolicyJob(data, config, device, channel, probabilities)
+        tag = channel.checksum[:12]
+        prob_file, role_file = out_dir / f"critical_prob-{tag}.npy", out_dir / f"roles-{tag}.npy"
+        if not prob_file.is_file() or (load_segmenter(channel.path).config.roles and not role_file.is_file()):
+            made, role = critical_probabilities(data, channel.path, device)
+            if role is not None:
+                _save_array(role_file, role)
+            _save_array(prob_file, made)  # last: its presence means both are there
+        probabilities = np.load(prob_file)
+        roles = np.load(role_file) if role_file.is_file() else None
+    job = PolicyJob(data, config, device, channel, probabilities, roles)
     log.info(f"policy: {len(job.train_ds)} train / {len(job.val_ds)} validation samples, tasks {data.tasks} -> encoders "
         f"{job.task_lut.tolist()}, critical channel from {channel.source}, {job.total_steps} steps of "
         f"{config.policy.optim.batch_size} on {device}")

@@ -31,6 +31,24 @@ def test_the_closure_follows_imports_anywhere_in_a_module_and_stays_in_the_packa
     assert module_closure(["anchordp3.d"], root) == ["anchordp3", "anchordp3.d"]
 
 
+def test_a_package_that_imports_all_its_modules_by_listing_them_brings_them_all(tmp_path) -> None:
+    root = package(tmp_path)
+    (root / "plugins").mkdir()
+    (root / "plugins" / "__init__.py").write_text(
+        "import importlib\nimport pkgutil\n\nfor m in pkgutil.iter_modules(__path__):\n"
+        "    importlib.import_module(f'{__name__}.{m.name}')\n")
+    (root / "plugins" / "one.py").write_text("X = 1\n")
+    (root / "e.py").write_text("from anchordp3 import plugins\n")
+    assert module_closure(["anchordp3.e"], root) == ["anchordp3", "anchordp3.e", "anchordp3.plugins", "anchordp3.plugins.one"]
+    before = code_hash(["anchordp3.e"], root)
+    (root / "plugins" / "one.py").write_text("X = 2\n")
+    assert code_hash(["anchordp3.e"], root) != before  # a plug-in's change is the stage's
+
+
+def test_every_task_module_counts_in_the_render_stages_code() -> None:
+    assert "anchordp3.sim.tasks.blocks" in module_closure(["anchordp3.stages.render"])
+
+
 def test_the_hash_changes_with_the_code_a_stage_runs_and_nothing_else(tmp_path) -> None:
     root = package(tmp_path)
     before = code_hash(["anchordp3.a"], root)

@@ -67,4 +67,10 @@ def test_the_table_is_cropped_away_unless_asked_to_keep_it(staged):
 def test_a_task_with_several_critical_objects_labels_each_with_a_role_of_its_own(staged, task):
     labels = load_features(staged[task].features)["labels"]
     objects = {r for r in np.unique(labels).tolist() if 1 <= r <= MAX_OBJECT_ROLES}
-    assert len(objects) >= 3, objects  # the three blocks, told apart
+    assert objects == {1, 2, 3, 4}, objects  # the three blocks, told apart, and the target pad the table crop keeps
+
+
+@pytest.mark.parametrize("task", ["stack_blocks_three", "blocks_ranking_rgb"])
+def test_the_target_pad_stands_clear_of_the_table_crop_in_every_frame(staged, task):
+    labels = load_features(staged[task].features)["labels"]
+    assert ((labels == 4).sum(axis=1) > 0).mean() > 0.9  # the goal is observed: role 4, the target

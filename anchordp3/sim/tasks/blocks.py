@@ -14,7 +14,7 @@ from anchordp3.sim.actors import Part
 from anchordp3.sim.expert import Expert, top_down_pose
 from anchordp3.sim.poses import HOME_FINGER_YAW, entity_yaw, grasp_yaw, yaw_pose
 from anchordp3.sim.tasks.base import Task
-from anchordp3.sim.tasks.shapes import jittered
+from anchordp3.sim.tasks.shapes import jittered, target_pad
 
 COLORS = {"red": (0.85, 0.1, 0.1, 1.0), "green": (0.1, 0.7, 0.15, 1.0), "blue": (0.1, 0.2, 0.85, 1.0)}
 
@@ -62,8 +62,8 @@ class StackBlocksThree(_BlocksTask):
     def build(self) -> None:
         self.target = np.array(self.table_xy((-0.08, -0.12), (0.08, -0.02), [], radius=0.0))
         self.keep_out = [(tuple(self.target), 0.08)]
-        self.world.add_marker("target", [Part("box", (0.035, 0.035, 0.0005), rgba=(0.95, 0.95, 0.95, 1.0))],
-                              sapien.Pose([*self.target, self.world.table_top + 0.0005]))
+        self.world.add_marker("target", target_pad(0.035, 0.035, (0.95, 0.95, 0.95, 1.0)),
+                              sapien.Pose([*self.target, self.world.table_top]))
         self._build_blocks((-0.32, -0.1), (0.32, 0.2))
 
     def plan(self, expert: Expert) -> None:
@@ -92,8 +92,8 @@ class BlocksRankingRGB(_BlocksTask):
         cx, cy = self.table_xy((-0.05, -0.13), (0.05, -0.08), [], radius=0.0)
         self.row = [np.array([cx + (i - 1) * self.spacing, cy]) for i in range(3)]
         self.keep_out = [((cx, cy), 0.16)]
-        self.world.add_marker("target", [Part("box", (1.5 * self.spacing, 0.035, 0.0005), rgba=(0.95, 0.95, 0.95, 1.0))],
-                              sapien.Pose([cx, cy, self.world.table_top + 0.0005]))
+        self.world.add_marker("target", target_pad(1.5 * self.spacing, 0.035, (0.95, 0.95, 0.95, 1.0)),
+                              sapien.Pose([cx, cy, self.world.table_top]))
         self._build_blocks((-0.32, 0.0), (0.32, 0.2))
 
     def plan(self, expert: Expert) -> None:

@@ -23,7 +23,7 @@ from anchordp3.sim.actors import Part
 from anchordp3.sim.expert import Expert, top_down_pose
 from anchordp3.sim.poses import HOME_FINGER_YAW, entity_yaw, held_place_pose, wrap_angle, yaw_pose
 from anchordp3.sim.tasks.base import Task
-from anchordp3.sim.tasks.shapes import FINGER_TIP_BELOW_TCP, box, jittered, pick_colour, upright
+from anchordp3.sim.tasks.shapes import FINGER_TIP_BELOW_TCP, box, jittered, pick_colour, target_pad, upright
 
 UPPER_COLOURS = {"white": (0.92, 0.92, 0.9), "black": (0.08, 0.08, 0.09), "red": (0.78, 0.12, 0.1),
                  "blue": (0.12, 0.28, 0.72), "grey": (0.5, 0.52, 0.55), "brown": (0.45, 0.28, 0.14),
@@ -112,7 +112,7 @@ class PlaceDualShoes(Task):
         top = self.world.table_top
         mat_rgba = jittered(rng, MAT_COLOURS[int(rng.integers(len(MAT_COLOURS)))])
         half = (size.length / 2 + 0.025, (sep + size.width) / 2 + 0.025)
-        self.world.add_marker("mat", [Part("box", (*half, 0.0008), rgba=mat_rgba)], yaw_pose(*centre, top + 0.0008, self.heading))
+        self.world.add_marker("mat", target_pad(*half, mat_rgba), yaw_pose(*centre, top, self.heading))
         radius = size.length / 2 + 0.015
         avoid = [(tuple(self.targets[a]), radius) for a in ("left", "right")]
         self.shoes = {}

@@ -13,6 +13,16 @@ from anchordp3.sim.actors import Part
 UPRIGHT = (0.7071068, 0.0, 0.7071068, 0.0)  # turns a part's x axis (a cylinder's axis) to vertical
 ACROSS = (0.7071068, 0.0, 0.0, 0.7071068)  # turns a part's x axis to the frame's y axis
 FINGER_TIP_BELOW_TCP = 0.015  # the finger tips reach this far below the tool centre point
+PAD_HEIGHT = 0.008  # metres: a target pad's top above the table, clear of the features' table crop (5 mm)
+
+
+def target_pad(half_x: float, half_y: float, rgba: tuple[float, ...]) -> list[Part]:
+    """A flat target pad (a marker: seen, not touched) of ``2 half_x x 2 half_y`` metres, its bottom
+    at the frame's origin and its top ``PAD_HEIGHT`` above: thicker than the features stage's
+    table crop (``features.table_margin``, 5 mm), so the point cloud keeps it and the masks can name
+    it (a 1 mm marker is cropped away with the table, and the goal it marks is then not observed).
+    Objects set on it rest on the table and sink into it by that height."""
+    return [Part("box", (half_x, half_y, PAD_HEIGHT / 2), sapien.Pose([0.0, 0.0, PAD_HEIGHT / 2]), rgba)]
 
 
 def jittered(rng: np.random.Generator, rgb: tuple[float, float, float], jitter: float = 0.04) -> tuple[float, ...]:
