@@ -321,7 +321,8 @@ class ObjectHeadConfig(_Config):
         if self.stay_radius and not self.anchored_offsets:
             raise ValueError("stay_radius: needs anchored_offsets")
         if self.source == "roles" and self.z_weight != 1.0:
-            raise ValueError("z_weight: a clustering setting; tokens of source 'roles' are not clustered")
+            raise ValueError(f"z_weight: {self.z_weight} weighs heights in the clustering (the recipe preset's), but tokens of "
+                             "source 'roles' are not clustered; set z_weight: 1")
         return self
 
     @property

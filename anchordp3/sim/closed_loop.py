@@ -27,6 +27,15 @@ def min_jerk(n: int) -> np.ndarray:
     return s**3 * (10.0 - 15.0 * s + 6.0 * s**2)
 
 
+def gripper_command(value: np.ndarray) -> np.ndarray:
+    """Normalised gripper targets ``(arms,)`` -> the command carried out: open (1) or closed (0),
+    whichever is nearer. The anchors' grippers are labelled 0 or 1 (the expert opens and closes
+    fully); a prediction in between, carried out as it is, drifts over many decisions where the
+    policy predicts it relative to the state (an idle gripper closing by a few per cent per
+    decision until the policy takes it for a grasp, ladder rung D5)."""
+    return (np.asarray(value, dtype=np.float64) >= 0.5).astype(np.float64)
+
+
 @dataclass
 class Observation:
     """What the policy sees at one decision: per-view captures and the measured ``state (32,)``."""
@@ -98,7 +107,8 @@ class EvalEpisode:
         minimum-jerk profile, timed as the expert times its moves: no faster than the robot's joint
         speed limit, a full gripper stroke in ``GRIPPER_SECONDS``; then hold the target as the
         expert does before it tags an anchor (a few steps, then until the arms have reached it).
-        Stops at the step limit; returns the control steps used.
+        Stops at the step limit; returns the control steps used. An anchor's gripper is a command
+        to open or to close (``gripper_command``).
 
         through: ``joints`` executes the anchor's joint angles (the report); ``pose`` its
         end-effector poses by IK (``pose_goal``)."""
@@ -108,6 +118,7 @@ class EvalEpisode:
         end = self.joint_goal(target_state) if through == "joints" else self.pose_goal(target_state)[0]
         q = np.concatenate([np.arange(self.layout.dim)[self.layout.qpos(a)] for a in ARMS])
         g = [self.layout.gripper(a) for a in ARMS]
+        end[g] = gripper_command(end[g])
         joint_steps = float(np.abs(end[q] - start[q]).max()) / self.robot.spec.max_joint_speed / self.dt * PEAK_OVER_MEAN
         grip_steps = float(np.abs(end[g] - start[g]).max()) * GRIPPER_SECONDS / self.dt
         n = max(int(np.ceil(max(joint_steps, grip_steps))), MIN_MOVE_STEPS)

@@ -8,7 +8,7 @@ import pytest
 
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.state import ARMS
-from anchordp3.sim.closed_loop import MIN_MOVE_STEPS, EvalEpisode
+from anchordp3.sim.closed_loop import MIN_MOVE_STEPS, EvalEpisode, gripper_command
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +42,17 @@ def test_executing_an_anchor_ends_at_its_joint_and_gripper_targets(episode):
     np.testing.assert_allclose(ep.robot.joint_target(), ep.joint_goal(target), atol=1e-9)
     obs = ep.observe()
     assert len(obs.views) == 4 and obs.state.shape == (ep.layout.dim,)
+
+
+def test_an_anchors_gripper_is_carried_out_as_open_or_closed_so_it_cannot_drift(episode):
+    np.testing.assert_array_equal(gripper_command(np.array([0.83, 0.31])), [1.0, 0.0])
+    ep = episode
+    for _ in range(3):  # an idle gripper predicted a few per cent more closed each decision stays open
+        ep.execute(_target(ep, 0.0, float(ep.robot.state()[ep.layout.gripper(ARMS[0])]) - 0.05))
+    assert all(ep.robot.joint_target()[ep.layout.gripper(a)] == 1.0 for a in ARMS)
+    ep.execute(_target(ep, 0.0, 0.2))
+    assert all(ep.robot.joint_target()[ep.layout.gripper(a)] == 0.0 for a in ARMS)
+    ep.execute(_target(ep, 0.0, 1.0))
 
 
 @pytest.mark.parametrize("task, seed", [("place_mouse", 0), ("place_phone_stand", 1), ("stack_blocks_three", 0)])
