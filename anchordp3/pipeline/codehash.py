@@ -54,14 +54,14 @@ def imported_modules(name: str, tree: ast.Module, root: Path) -> set[str]:
             found.update(f"{base}.{a.name}" for a in node.names)  # `from pkg import module`
     if is_package and imports_every_module(tree):
         found.update(f"{name}.{p.stem}" for p in module_path(name, root).parent.iterdir()
-                     if p.suffix == ".py" and p.stem != "__init__" or (p / "__init__.py").is_file())
+                     if (p.suffix == ".py" and p.stem != "__init__") or (p / "__init__.py").is_file())
     return {m for m in found if m.split(".")[0] == PACKAGE and module_path(m, root) is not None}
 
 
 def imports_every_module(tree: ast.Module) -> bool:
     """Whether a package's ``__init__`` imports all its modules by listing them
-    (``pkgutil.iter_modules(__path__)``, a registry's plug-ins: the task classes of ``sim/tasks``),
-    imports no statement names."""
+    (``pkgutil.iter_modules(__path__)``: a registry's plug-ins, the task classes of ``sim/tasks``),
+    which no import statement names."""
     return any(isinstance(node, ast.Attribute) and node.attr == "iter_modules" for node in ast.walk(tree))
 
 

@@ -300,11 +300,11 @@ def train_policy(data: ShardedDataset, config: TrainingConfig, out_dir: Path, de
             raise ValueError("policy: the segmenter channel needs the segmenter's model.pt and its checksum")
         tag = channel.checksum[:12]
         prob_file, role_file = out_dir / f"critical_prob-{tag}.npy", out_dir / f"roles-{tag}.npy"
-        if not prob_file.is_file() or (load_segmenter(channel.path).config.roles and not role_file.is_file()):
+        if not prob_file.is_file():  # written last: where it is, the roles (with a role head) are too
             made, role = critical_probabilities(data, channel.path, device)
             if role is not None:
                 _save_array(role_file, role)
-            _save_array(prob_file, made)  # last: its presence means both are there
+            _save_array(prob_file, made)
         probabilities = np.load(prob_file)
         roles = np.load(role_file) if role_file.is_file() else None
     job = PolicyJob(data, config, device, channel, probabilities, roles)
