@@ -469,6 +469,8 @@ def recipe(
     out: Path = typer.Option(Path("runs/recipe"), "--out", help="Recipe folder (re-running resumes it)."),
     address: str = typer.Option(None, "--address", help="Ray cluster to join (default: $RAY_ADDRESS, else a local Ray)."),
     keep_outputs: bool = typer.Option(False, "--keep-outputs", help="Resume data that older code made (same config) instead of refusing."),
+    force: bool = typer.Option(False, "--force", help="Redo the stages and models a config or code change invalidated."),
+    from_stage: str = typer.Option(None, "--from-stage", help="Redo this stage and everything after it (more seeds: --from-stage write keeps every episode made and adds the new ones)."),
 ) -> None:
     """The best known recipe end to end: data, the three models, closed-loop evaluation on unseen
     seeds and on training seeds; report with success per task, first-anchor errors and wall times."""
@@ -476,7 +478,7 @@ def recipe(
     from anchordp3.schemas.recipe import load_recipe_config
 
     results = run_recipe(out, load_recipe_config(config), address=address,
-                         keep_outputs=keep_outputs)
+                         keep_outputs=keep_outputs, force=force, from_stage=from_stage)
     typer.echo(recipe_report(results))
     typer.echo(f"report: {out / 'report.md'}")
 

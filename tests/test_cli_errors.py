@@ -114,6 +114,7 @@ def test_a_read_only_destination_is_one_line_naming_it(read_only, tmp_path, comm
     (["eval", "--models", "pretrained", "--out", "DEST", "--ddim-steps", "0"], "--ddim-steps"),
     (["snapshot", "place_mouse", "--seed", "-5", "--out", "DEST"], "--seed"),
     (["run", DEMO], "--run-dir"),
+    (["experiment", "recipe", RECIPE, "--out", "DEST", "--from-stage", "bogus"], "--from-stage"),
     (["no-such-command"], "no-such-command"),
 ])
 def test_the_command_lines_own_argument_errors_are_one_line(tmp_path, args, name):

@@ -12,12 +12,13 @@ the training seeds'), each evaluation with its table, chart, frame strips and re
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 from anchordp3.pipeline.evaluation import TRAIN_STAGE, episode_records, summarize, train_target, wilson_interval
 from anchordp3.pipeline.phases import PhaseClock
 from anchordp3.pipeline.products import stage_folder
-from anchordp3.pipeline.runner import RunOptions, run_pipeline
+from anchordp3.pipeline.runner import RunOptions, check_options, run_pipeline
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.training import model_status
 from anchordp3.pipeline.work import stage_dir
@@ -38,16 +39,18 @@ def recipe_run_config(cfg: RecipeConfig) -> RunConfig:
 
 
 def run_recipe(out: Path, cfg: RecipeConfig, address: str | None = None,
-               keep_outputs: bool = False) -> dict:
+               keep_outputs: bool = False, force: bool = False, from_stage: str | None = None) -> dict:
     """Run (or resume) the recipe into ``out``; returns the results written to ``results.json``.
-    keep_outputs: keep data stages that only older code made (``RunOptions.keep_outputs``)."""
+    keep_outputs, force, from_stage: as ``RunOptions``'s (keep data stages that only older code
+    made; redo what a config or code change invalidated; redo one stage and all after it)."""
+    target = recipe_run_config(cfg)
+    opts = RunOptions(address=address, keep_outputs=keep_outputs, force=force, from_stage=from_stage, redo=EVALUATIONS)
+    check_options(target, opts)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     run = out / "run"
     clock = PhaseClock(out / PHASES_FILE, (GROUP,))
-    target = recipe_run_config(cfg)
-    run_pipeline(target, run, RunOptions(address=address, keep_outputs=keep_outputs, redo=EVALUATIONS,
-                                         on_phase=clock.recorder(GROUP)))
+    run_pipeline(target, run, replace(opts, on_phase=clock.recorder(GROUP)))
     unseen = _records(stage_folder(run, "evaluate"), target)
     seen = _records(stage_folder(run, TRAIN_STAGE), train_target(target)) if cfg.eval.train_episodes else []
     results = recipe_results(out, cfg, unseen, seen, clock.seconds[GROUP])

@@ -845,6 +845,18 @@ def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(),
     """Run (or resume) stages of ``graph`` for ``cfg`` in ``run_dir``: ``opts.stages``, else the
     graph's targets for the config (the data stages, then training and evaluation where the config
     has their sections); returns per-stage counts."""
+    check_options(cfg, opts, graph)
+    from anchordp3.pipeline.inspect import check_task_names
+
+    check_task_names(cfg)
+    if opts.address or os.environ.get("RAY_ADDRESS"):
+        join_cluster(opts.address, cfg, graph)  # before the run directory exists: a bad address creates nothing
+    return Runner(cfg, run_dir, opts, graph).run()
+
+
+def check_options(cfg: RunConfig, opts: RunOptions, graph: Graph = GRAPH) -> None:
+    """Refuse ``opts`` that name stages ``graph`` lacks or that ``cfg`` has no section for, with a
+    line naming the option; before anything is written."""
     unknown = [s for s in (opts.stages or ()) if s not in graph.names]
     if unknown:
         raise ValueError(f"--stages: unknown stage {unknown[0]!r}; choose from {', '.join(graph.names)}")
@@ -854,12 +866,6 @@ def run_pipeline(cfg: RunConfig, run_dir: Path, opts: RunOptions = RunOptions(),
         raise ValueError(f"--stages: {unset[0]} needs the run config's {section} section (`anchordp3 train` / `anchordp3 eval` set it)")
     if opts.from_stage and opts.from_stage not in graph.names:
         raise ValueError(f"--from-stage: unknown stage {opts.from_stage!r}; choose from {', '.join(graph.names)}")
-    from anchordp3.pipeline.inspect import check_task_names
-
-    check_task_names(cfg)
-    if opts.address or os.environ.get("RAY_ADDRESS"):
-        join_cluster(opts.address, cfg, graph)  # before the run directory exists: a bad address creates nothing
-    return Runner(cfg, run_dir, opts, graph).run()
 
 
 def join_cluster(address: str | None, cfg: RunConfig | None = None, graph: Graph = GRAPH) -> None:

@@ -15,8 +15,10 @@ classifier picked another task and the episode failed), and for an episode that 
 or decisions, ``not_released`` when the task's only unmet condition (``Task.evaluate``) is its
 release (everything is in place, a gripper still holds on), else what the trace of its decisions
 shows (``diagnose``): ``stalled`` (its last decisions no longer moved the robot), ``grasp_missed`` (a gripper closed but nothing came up),
-``object_dropped`` (an object came up, then fell while the grippers stayed closed),
-``placed_wrong`` (an object was carried and released, but the task is not done), else
+``object_dropped`` (an object came up, then fell while no gripper opened),
+``placed_wrong`` (an object was carried and, within ``RELEASE_DECISIONS`` of the last decision
+that saw it up, a gripper closed then opened, whatever the other arm's does, but the task is not
+done), else
 ``step_limit`` / ``max_decisions``. Every failed episode also records which of the task's named
 conditions were unmet at its end (``EvalRecord.unmet``).
 """
@@ -50,6 +52,7 @@ FAILURE_MODES = ("layout_failure", "unstable", "no_points", "wrong_task", "not_r
                  "object_dropped", "placed_wrong", "step_limit", "max_decisions")
 LIFTED = 0.03  # an object this far above where it settled has been picked up, metres
 STALL_DECISIONS = 3  # this many decisions in a row without motion make a stall
+RELEASE_DECISIONS = 2  # a gripper opening within this many decisions of the last that saw an object up released it
 STALL_MOTION = 0.005  # joint motion (rad) and gripper change below which a decision did nothing
 
 
@@ -76,7 +79,8 @@ def diagnose(trace: list[DecisionTrace], ran_out: str) -> str:
     if lifted[-1]:
         return ran_out
     k = max(i for i, v in enumerate(lifted) if v)  # the last decision with an object up
-    released = min(trace[k + 1].grippers) > 0.5 if k + 1 < len(trace) else False
+    after = trace[k + 1:k + 1 + RELEASE_DECISIONS]  # a place lowers the object (one anchor), then opens
+    released = any(a < 0.5 < b for d in after for a, b in zip(trace[k].grippers, d.grippers))
     return "placed_wrong" if released else "object_dropped"
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from anchordp3.stages.evaluate import DecisionTrace, diagnose
 
-OPEN, CLOSED = (1.0, 1.0), (0.0, 1.0)
+OPEN, CLOSED, BOTH_CLOSED, OTHER_CLOSED = (1.0, 1.0), (0.0, 1.0), (0.0, 0.0), (1.0, 0.0)
 
 
 def d(motion: float, grippers: tuple[float, float], lift: float) -> DecisionTrace:
@@ -30,6 +30,23 @@ def test_an_object_that_fell_while_the_gripper_stayed_closed_was_dropped():
 def test_an_object_carried_then_released_off_target_was_placed_wrong():
     trace = [d(0.4, OPEN, 0.0), d(0.05, CLOSED, 0.0), d(0.3, CLOSED, 0.08), d(0.05, OPEN, 0.0), d(0.3, OPEN, 0.0)]
     assert diagnose(trace, "max_decisions") == "placed_wrong"
+
+
+def test_a_release_by_one_arm_while_the_other_grasps_is_a_placement_not_a_drop():
+    trace = [d(0.4, OPEN, 0.0), d(0.05, CLOSED, 0.0), d(0.3, CLOSED, 0.08), d(0.05, BOTH_CLOSED, 0.08),
+             d(0.3, OTHER_CLOSED, 0.0), d(0.3, OTHER_CLOSED, 0.0)]
+    assert diagnose(trace, "step_limit") == "placed_wrong"
+    trace = [d(0.4, OPEN, 0.0), d(0.05, BOTH_CLOSED, 0.0), d(0.3, BOTH_CLOSED, 0.08), d(0.3, BOTH_CLOSED, 0.0)]
+    assert diagnose(trace, "step_limit") == "object_dropped"
+
+
+def test_an_object_lowered_below_the_lift_line_then_let_go_was_placed():
+    """The place's descent (one anchor) brings the object down before the gripper opens."""
+    trace = [d(0.4, OPEN, 0.0), d(0.05, CLOSED, 0.0), d(0.3, CLOSED, 0.08), d(0.1, CLOSED, 0.01),
+             d(0.05, OPEN, 0.01), d(0.3, OPEN, 0.0)]
+    assert diagnose(trace, "step_limit") == "placed_wrong"
+    dropped_then_opened_late = trace[:4] + [d(0.3, CLOSED, 0.0)] * 3 + [d(0.3, OPEN, 0.0)]
+    assert diagnose(dropped_then_opened_late, "step_limit") == "object_dropped"
 
 
 def test_a_moving_episode_that_never_closed_a_gripper_just_ran_out():
