@@ -25,7 +25,9 @@ The per-axis spread cannot tell an object turned +30 degrees from one turned -30
 yaw of an elongated object decides its grasp (a mouse grasped 30 degrees off is missed). The
 orientation features are the cluster's xy second moments, ``((cxx - cyy), 2 cxy) / (cxx + cyy)``:
 ``anisotropy x (cos 2θ, sin 2θ)`` for a principal axis at yaw θ (π-periodic, as the axis is), zero
-for a round object, turning by 2φ when the scene turns by φ and unchanged when it moves.
+for a round object, turning by 2φ when the scene turns by φ and unchanged when it moves. With
+``half_angle``, two more: the same axis as anisotropy x (cos θ, sin θ), which a top-down grasp's
+finger direction follows linearly.
 
 Where the points carry roles (the segmenter's role head, or the simulator's labels: a point's
 object's place in the task's ``critical_objects()``), steps 1-4 give way to the roles: token j is
@@ -53,9 +55,10 @@ TOKEN_FEATURES = 3 + 3 * len(ARMS) + 3 + 1 + 1
 ORIENTATION_FEATURES = 2  # anisotropy x (cos 2θ, sin 2θ) of a cluster's principal axis in the table plane
 
 
-def token_features(orientation: bool = False) -> int:
-    """Numbers per object token: ``TOKEN_FEATURES``, plus ``ORIENTATION_FEATURES`` with ``orientation``."""
-    return TOKEN_FEATURES + (ORIENTATION_FEATURES if orientation else 0)
+def token_features(orientation: bool = False, half_angle: bool = False) -> int:
+    """Numbers per object token: ``TOKEN_FEATURES``, plus ``ORIENTATION_FEATURES`` with ``orientation``
+    and as many again with ``half_angle``."""
+    return TOKEN_FEATURES + ORIENTATION_FEATURES * (int(orientation) + int(orientation and half_angle))
 
 
 def cluster_critical_points(xyz: torch.Tensor, critical: torch.Tensor, k: int,
@@ -98,7 +101,7 @@ def cluster_critical_points(xyz: torch.Tensor, critical: torch.Tensor, k: int,
 
 def object_tokens(points: torch.Tensor, state: torch.Tensor, layout: StateLayout, k: int,
                   threshold: float = 0.5, orientation: bool = False, z_weight: float = 1.0,
-                  roles: torch.Tensor | None = None) -> torch.Tensor:
+                  roles: torch.Tensor | None = None, half_angle: bool = False) -> torch.Tensor:
     """The K critical-object tokens of each observation.
 
     points: (B, N, C) in data units, xyz (metres) first and the critical probability last;
@@ -106,7 +109,8 @@ def object_tokens(points: torch.Tensor, state: torch.Tensor, layout: StateLayout
     its centroid, the centroid minus each arm's end effector (``ARMS`` order), the per-axis spread,
     the top (highest z) minus the centroid's z, all x their scales, its share of the critical
     points and, with ``orientation``, its principal axis in the table plane as anisotropy x
-    (cos 2θ, sin 2θ) (module docstring). The objects: without ``roles``, the k clusters of the
+    (cos 2θ, sin 2θ) (module docstring), and with ``half_angle`` also anisotropy x (cos θ, sin θ)
+    (``half_angle_axis``). The objects: without ``roles``, the k clusters of the
     points whose probability is above ``threshold``, largest first (``cluster_critical_points``,
     ``z_weight`` as there); with ``roles (B, N)`` integer (0 none), token j is the points of role
     j + 1, so each token keeps its object from frame to frame and scene to scene. An object
@@ -136,7 +140,8 @@ def object_tokens(points: torch.Tensor, state: torch.Tensor, layout: StateLayout
         (count / critical.float().sum(1, keepdim=True).clamp(min=1))[..., None],
     ]
     if orientation:
-        parts.append(principal_axis(xyz - own, member, safe))
+        axis = principal_axis(xyz - own, member, safe)
+        parts += [axis, half_angle_axis(axis)] if half_angle else [axis]
     return torch.cat(parts, dim=-1) * present
 
 
@@ -150,6 +155,17 @@ def principal_axis(centred: torch.Tensor, member: torch.Tensor, count: torch.Ten
     cxx, cyy, cxy = (torch.einsum("bnk,bnc->bkc", member, moments) / count).unbind(-1)
     total = (cxx + cyy).clamp(min=1e-10)
     return torch.stack([(cxx - cyy) / total, 2 * cxy / total], dim=-1)
+
+
+def half_angle_axis(axis: torch.Tensor) -> torch.Tensor:
+    """``axis (..., 2)`` = anisotropy x (cos 2θ, sin 2θ) (``principal_axis``) -> anisotropy x (cos θ,
+    sin θ) with θ in (-90°, 90°]: the axis itself rather than its double angle. A finger yaw that
+    turns with the object (θ + c) is then linear in it over the whole range, with its one jump at
+    θ = ±90° where the axis's own branch cut lies (a phone lying at -89° and at +89° is the same
+    phone, grasped by fingers half a turn apart)."""
+    anisotropy = axis.norm(dim=-1, keepdim=True)
+    theta = torch.atan2(axis[..., 1], axis[..., 0]) / 2
+    return anisotropy * torch.stack([theta.cos(), theta.sin()], dim=-1)
 
 
 def token_gripper_offsets(tokens: torch.Tensor) -> torch.Tensor:

@@ -80,7 +80,7 @@ class AnchorDiffusionPolicy(nn.Module):
         self.objects = objects = config.objects  # the object head's settings, or None
         if objects is not None:
             self.object_encoder = ObjectTokenEncoder(objects.tokens, out_dim=objects.encoder_dim,
-                                                     features=token_features(objects.orientation))
+                                                     features=token_features(objects.orientation, objects.half_angle))
         self.unet = ConditionalUnet1D(config.action_dim, config.cond_dim, config.unet)
         self.point_normalizer = MinMaxNormalizer(self.point_channels)
         self.state_normalizer = MinMaxNormalizer(config.action_dim)
@@ -135,7 +135,7 @@ class AnchorDiffusionPolicy(nn.Module):
         tokens = None
         if self.object_encoder is not None:
             tokens = object_tokens(points, state, self.layout, self.objects.tokens, orientation=self.objects.orientation,
-                                   z_weight=self.objects.z_weight, roles=self._roles(obs))
+                                   z_weight=self.objects.z_weight, roles=self._roles(obs), half_angle=self.objects.half_angle)
             parts.append(self.object_encoder(tokens.to(parts[0].dtype)))
         return torch.cat(parts, dim=-1), tokens
 

@@ -272,6 +272,12 @@ class ObjectHeadConfig(_Config):
         description="Each token also carries the direction of its points' principal axis in the table plane, "
                     "anisotropy x (cos 2θ, sin 2θ) (models.objects.principal_axis): the yaw at which an elongated object "
                     "is grasped, which the per-axis spread cannot tell apart from its mirror image.")
+    half_angle: bool = Field(
+        default=False,
+        description="With orientation, each token also carries its principal axis as anisotropy x (cos θ, sin θ), θ "
+                    "in (-90°, 90°] (models.objects.half_angle_axis): a top-down grasp across or along the axis turns "
+                    "its fingers by θ, which (cos 2θ, sin 2θ) gives only through a half-angle the network has to learn "
+                    "(the phone's wrist ignored its yaw, ladder rung D7).")
     z_weight: float = Field(
         default=1.0, gt=0,
         description="The tokens' clustering counts heights this many times over: above 1, an object held over another "
@@ -314,6 +320,8 @@ class ObjectHeadConfig(_Config):
     def _needs(self) -> ObjectHeadConfig:
         if bool(self.gate_supervision) != self.anchored_offsets:
             raise ValueError("gate_supervision: > 0 exactly when anchored_offsets (the weight of its classifier's loss)")
+        if self.half_angle and not self.orientation:
+            raise ValueError("half_angle: needs orientation (the half angle of its principal axis)")
         if self.held_offsets and not self.anchored_offsets:
             raise ValueError("held_offsets: needs anchored_offsets")
         if self.held_destination and not self.held_offsets:

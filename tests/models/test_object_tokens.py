@@ -182,6 +182,36 @@ def test_orientation_tells_an_object_from_its_mirror_image_where_the_spread_cann
     torch.testing.assert_close(object_tokens(plus, state, LAYOUT, 1)[0, 0], tp[:TOKEN_FEATURES])
 
 
+def test_the_half_angle_turns_with_the_object_where_a_top_down_grasp_turns_its_fingers() -> None:
+    """Over the whole range of an elongated object's axis, (cos θ, sin θ) is linear in the finger
+    direction of a grasp across it (θ - 90°), which (cos 2θ, sin 2θ) is not: a linear fit on the
+    half angle finds every grasp, one on the double angle misses by tens of degrees."""
+    import math
+
+    yaws = [math.radians(d) for d in range(-85, 90, 10)]
+    tokens = torch.stack([object_tokens(turned_scene(y)[0], turned_scene(y)[1], LAYOUT, 1, orientation=True,
+                                        half_angle=True)[0, 0] for y in yaws])
+    assert tokens.shape[-1] == token_features(True, True) == TOKEN_FEATURES + 4
+    double, half = tokens[:, -4:-2], tokens[:, -2:]
+    torch.testing.assert_close(half / half.norm(dim=-1, keepdim=True),
+                               torch.tensor([[math.cos(y), math.sin(y)] for y in yaws]), atol=1e-3, rtol=0)
+    fingers = torch.tensor([[math.cos(y - math.pi / 2), math.sin(y - math.pi / 2)] for y in yaws])
+
+    def worst_fit_degrees(x: torch.Tensor) -> float:
+        design = torch.cat([x, torch.ones(len(x), 1)], dim=1).double()
+        fit = design @ torch.linalg.lstsq(design, fingers.double()).solution
+        return math.degrees(float(torch.atan2(fit[:, 1], fit[:, 0]).sub(torch.atan2(fingers[:, 1], fingers[:, 0]).double())
+                                  .remainder(2 * math.pi).sub(math.pi).abs().sub(math.pi).abs().max()))
+
+    assert worst_fit_degrees(half) < 3.0 and worst_fit_degrees(double) > 30.0
+    # without it, the tokens are as before
+    torch.testing.assert_close(object_tokens(*turned_scene(yaws[3]), LAYOUT, 1, orientation=True)[0, 0], tokens[3, :-2])
+    with pytest.raises(ValidationError, match="half_angle: needs orientation"):
+        head(TINY, tokens=2, half_angle=True)
+    policy = AnchorDiffusionPolicy(head(TINY, tokens=2, orientation=True, half_angle=True))
+    assert policy.object_encoder.net[0].in_features == 2 * token_features(True, True)
+
+
 def test_the_policy_reads_object_orientation_only_with_tokens() -> None:
     config = head(TINY, tokens=2, orientation=True)
     policy = AnchorDiffusionPolicy(config)
