@@ -481,6 +481,16 @@ class TrainingConfig(_Config):
     classifier: ClassifierTrainingConfig = Field(default_factory=ClassifierTrainingConfig, description="Classifier fine-tuning.")
     policy: PolicyTrainingConfig = Field(default_factory=PolicyTrainingConfig, description="Policy training.")
 
+    @model_validator(mode="after")
+    def _roles_from_the_segmenter(self) -> TrainingConfig:
+        objects = self.policy.model.objects
+        if (objects is not None and objects.source == "roles" and self.policy.label_channel != "ground_truth"
+                and self.segmenter.model.roles < objects.tokens):
+            raise ValueError(f"segmenter.model.roles: {self.segmenter.model.roles}, but the policy's tokens are the "
+                             f"segmenter's roles 1..{objects.tokens} (policy.model.objects.source 'roles'); set it to at "
+                             "least that, or policy.label_channel: ground_truth")
+        return self
+
 
 def _report_preset() -> TrainingConfig:
     sa = (

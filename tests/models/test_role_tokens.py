@@ -109,3 +109,14 @@ def test_role_tokens_are_not_clustered_so_take_no_height_weight() -> None:
     with pytest.raises(ValidationError, match="roles"):
         SegmenterConfig(roles=17)
     assert PolicyConfig.model_validate({"preset": "recipe", "objects": {"source": "roles", "z_weight": 1.0, "tokens": 4}}).objects.held_offsets
+
+
+def test_a_policy_of_role_tokens_over_a_segmenter_without_enough_roles_is_refused_with_its_config() -> None:
+    """Before any model trains: the training config itself names the segmenter field to set."""
+    from anchordp3.schemas.training import TrainingConfig
+
+    policy = {"model": {"preset": "recipe", "objects": {"source": "roles", "z_weight": 1.0, "tokens": 4}}}
+    with pytest.raises(ValidationError, match=r"segmenter.model.roles: 2, but the policy's tokens are the segmenter's roles 1..4"):
+        TrainingConfig.model_validate({"segmenter": {"model": {"roles": 2}}, "policy": policy})
+    assert TrainingConfig.model_validate({"segmenter": {"model": {"roles": 4}}, "policy": policy})
+    assert TrainingConfig.model_validate({"policy": {**policy, "label_channel": "ground_truth"}})  # the labels' roles
