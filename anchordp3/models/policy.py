@@ -1,7 +1,8 @@
 """The anchor diffusion policy: one observation frame -> the next H anchors (H x 32).
 
 Observation: ``points (B, N, 12)`` (11 features + critical probability), ``state (B, 32)``,
-``task_id (B,)``. With the object head (``config.objects``) the critical points' K clusters
+``task_id (B,)`` (which point encoder, and with ``task_embedding`` which learned task vector, joins
+the condition). With the object head (``config.objects``) the critical points' K clusters
 (``models.objects``) add their own feature to the condition, and with its ``anchored_offsets`` the
 offset of the object a
 classifier picks per (slot, arm) is added to the denoiser's clean sample where it holds
@@ -76,6 +77,7 @@ class AnchorDiffusionPolicy(nn.Module):
         self.layout = StateLayout.of_length(config.action_dim)
         self.point_encoder = TaskConditionedEncoder(config.num_tasks, config.point_encoder)
         self.state_encoder = StateEncoder(config.state_encoder)
+        self.task_embedding = nn.Embedding(config.num_tasks, config.task_embedding) if config.task_embedding else None
         self.object_encoder = None
         self.objects = objects = config.objects  # the object head's settings, or None
         if objects is not None:
@@ -124,8 +126,8 @@ class AnchorDiffusionPolicy(nn.Module):
 
     # --------------------------------------------------------------------------- forward
     def encode_observation(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """obs (data units) -> FiLM condition (B, cond_dim): point feature, state feature and, with
-        the object head, the critical-object tokens' feature."""
+        """obs (data units) -> FiLM condition (B, cond_dim): point feature, state feature, with the
+        object head the critical-object tokens' feature, and with ``task_embedding`` the task's vector."""
         return self._condition(obs)[0]
 
     def _condition(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -137,6 +139,8 @@ class AnchorDiffusionPolicy(nn.Module):
             tokens = object_tokens(points, state, self.layout, self.objects.tokens, orientation=self.objects.orientation,
                                    z_weight=self.objects.z_weight, roles=self._roles(obs), half_angle=self.objects.half_angle)
             parts.append(self.object_encoder(tokens.to(parts[0].dtype)))
+        if self.task_embedding is not None:
+            parts.append(self.task_embedding(task_id).to(parts[0].dtype))
         return torch.cat(parts, dim=-1), tokens
 
     def gates(self, cond: torch.Tensor) -> torch.Tensor:

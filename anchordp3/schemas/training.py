@@ -355,6 +355,12 @@ class PolicyConfig(_Config):
     action_dim: int = Field(default=32, ge=1, description="Length of one anchor (StateLayout.dim).")
     num_tasks: int = Field(default=len(TASK_NAMES), ge=1, description="Task-specific point encoders (no weight sharing).")
     point_encoder: PointEncoderConfig = Field(default_factory=PointEncoderConfig, description="Each task's point encoder.")
+    task_embedding: int = Field(
+        default=0, ge=0,
+        description="Width of a learned vector per task in the FiLM condition (0: none, as the report, where only the "
+                    "task's own point encoder tells the shared action expert which task it acts in): two tasks of alike "
+                    "scenes and roles (the stack and the ranking of the same three blocks) otherwise share their moves "
+                    "(ladder rung D6b: the ranking started with red as the stack does).")
     state_encoder: StateEncoderConfig = Field(default_factory=StateEncoderConfig, description="The state MLP.")
     unet: UNetConfig = Field(default_factory=UNetConfig, description="The shared action expert.")
     scheduler: DiffusionSchedulerConfig = Field(default_factory=DiffusionSchedulerConfig, description="Diffusion noise schedule.")
@@ -420,8 +426,10 @@ class PolicyConfig(_Config):
 
     @property
     def cond_dim(self) -> int:
-        """Length of the observation feature fed to FiLM: point feature + state feature (+ the object tokens' feature)."""
-        return self.point_encoder.out_dim + self.state_encoder.hidden_dim + (self.objects.encoder_dim if self.objects else 0)
+        """Length of the observation feature fed to FiLM: point feature + state feature (+ the object tokens'
+        feature, + the task's embedding)."""
+        return (self.point_encoder.out_dim + self.state_encoder.hidden_dim + (self.objects.encoder_dim if self.objects else 0)
+                + self.task_embedding)
 
 
 POLICY_PRESETS: dict[str, dict[str, Any]] = {  # PolicyConfig.preset: settings under the fields given beside it

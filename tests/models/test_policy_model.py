@@ -252,6 +252,27 @@ def test_only_the_active_tasks_encoders_receive_gradient() -> None:
     assert all(p.grad is not None for p in policy.unet.parameters())
 
 
+def test_a_task_embedding_tells_the_action_expert_the_task_where_the_encoders_see_alike_features() -> None:
+    """With every task's point encoder giving the same feature (here: the same weights), the
+    condition differs between tasks only through the task's learned vector, and the loss trains it."""
+    config = TINY.model_copy(update={"task_embedding": 8})
+    assert config.cond_dim == TINY.cond_dim + 8
+    torch.manual_seed(0)
+    policy = AnchorDiffusionPolicy(config)
+    for enc in policy.point_encoder.encoders[1:]:
+        enc.load_state_dict(policy.point_encoder.encoders[0].state_dict())
+    batch = samples(2, tasks=[3, 4])
+    batch = {**batch, "points": batch["points"][:1].expand(2, -1, -1), "state": batch["state"][:1].expand(2, -1)}
+    policy.set_normalizers(stats_of(batch))
+    cond = policy.encode_observation(batch)
+    torch.testing.assert_close(cond[0, :-8], cond[1, :-8])
+    assert not torch.allclose(cond[0, -8:], cond[1, -8:])
+    policy.compute_loss(batch, generator=torch.Generator().manual_seed(0)).backward()
+    grad = policy.task_embedding.weight.grad
+    assert grad[3].abs().sum() > 0 and grad[4].abs().sum() > 0 and grad[0].abs().sum() == 0
+    assert AnchorDiffusionPolicy(TINY).task_embedding is None  # off: the report's condition
+
+
 def test_mixed_task_batch_matches_per_sample_encoding() -> None:
     policy = make_policy().eval()
     batch = samples(5, tasks=[7, 0, 3, 0, 7])
