@@ -40,6 +40,7 @@ from anchordp3.schemas.training import PolicyConfig, TrainingConfig, model_task_
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.train_segmenter import load_segmenter, stats_limits
 from anchordp3.stages.training_loop import (
+    Progress,
     TrainingJob,
     TrainResult,
     batches_per_epoch,
@@ -69,19 +70,22 @@ class CriticalChannel:
 
 
 def critical_probabilities(data: ShardedDataset, segmenter_path: Path, device: torch.device,
-                           batch_size: int = 32) -> tuple[np.ndarray, np.ndarray | None]:
+                           batch_size: int = 32, interval_s: float = 60.0) -> tuple[np.ndarray, np.ndarray | None]:
     """The segmenter's critical probability of every point of every sample, ``(samples, N) float16``
     indexed by global sample index (both splits), and with its role head each point's role
-    ``(samples, N) uint8`` (else None)."""
+    ``(samples, N) uint8`` (else None). A progress line every ``interval_s`` seconds and at the end."""
     model = load_segmenter(segmenter_path, device)
     ds = SplitDataset(data, None, keys=("points",))
     out = np.zeros((len(data), data.info.n_points), dtype=np.float16)
     roles = np.zeros((len(data), data.info.n_points), dtype=np.uint8) if model.config.roles else None
+    progress, done = Progress("policy: the segmenter's pass", len(ds), 0, interval_s, unit="sample"), 0
     for batch in eval_batches(ds, batch_size):
         probs, role = model.predict(batch["points"].to(device))
         out[batch["index"].numpy()] = probs.cpu().numpy().astype(np.float16)
         if roles is not None:
             roles[batch["index"].numpy()] = role.cpu().numpy()
+        done += len(batch["index"])
+        progress.update(done, force=done == len(ds))
     log.info(f"policy: segmenter probabilities of {len(ds)} samples computed (mean {float(out.mean()):.3f})")
     return out, roles
 
@@ -301,7 +305,7 @@ def train_policy(data: ShardedDataset, config: TrainingConfig, out_dir: Path, de
         tag = channel.checksum[:12]
         prob_file, role_file = out_dir / f"critical_prob-{tag}.npy", out_dir / f"roles-{tag}.npy"
         if not prob_file.is_file():  # written last: where it is, the roles (with a role head) are too
-            made, role = critical_probabilities(data, channel.path, device)
+            made, role = critical_probabilities(data, channel.path, device, interval_s=config.loop.log_interval_s)
             if role is not None:
                 _save_array(role_file, role)
             _save_array(prob_file, made)

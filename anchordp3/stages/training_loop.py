@@ -340,13 +340,15 @@ def _moving_average(ys: list[float], window: int) -> list[float]:
 # --------------------------------------------------------------------------------------- progress
 class Progress:
     """Progress lines ``name: step k/N (p%) | loss L | r steps/s | ETA t`` at most every
-    ``interval_s`` seconds (and whenever ``force``); the rate counts this call's steps only."""
+    ``interval_s`` seconds (and whenever ``force``); the rate counts this call's steps only.
+    ``unit`` names what is counted (``step``: an optimizer step; ``sample``, ...); a line
+    without a loss leaves it out."""
 
-    def __init__(self, name: str, total: int, start: int, interval_s: float) -> None:
-        self.name, self.total, self.start, self.interval_s = name, total, start, interval_s
+    def __init__(self, name: str, total: int, start: int, interval_s: float, unit: str = "step") -> None:
+        self.name, self.total, self.start, self.interval_s, self.unit = name, total, start, interval_s, unit
         self.t0 = self.last = time.perf_counter()
 
-    def update(self, step: int, loss: float, force: bool = False, extra: str = "") -> None:
+    def update(self, step: int, loss: float | None = None, force: bool = False, extra: str = "") -> None:
         now = time.perf_counter()
         if not force and now - self.last < self.interval_s:
             return
@@ -355,8 +357,10 @@ class Progress:
         rate = done / (now - self.t0) if now > self.t0 else 0.0
         eta = format_seconds((self.total - step) / rate) if rate > 0 else "?"
         pct = 100.0 * step / max(self.total, 1)
-        log.info(f"{self.name}: step {step}/{self.total} ({pct:.0f}%) | loss {loss:.4g} | {rate:.2f} steps/s | ETA {eta}"
-                 + (f" | {extra}" if extra else ""))
+        parts = [f"{self.name}: {self.unit} {step}/{self.total} ({pct:.0f}%)"]
+        parts += [f"loss {loss:.4g}"] if loss is not None else []
+        parts += [f"{rate:.2f} {self.unit}s/s", f"ETA {eta}"] + ([extra] if extra else [])
+        log.info(" | ".join(parts))
 
 
 class _StopRequested(Exception):

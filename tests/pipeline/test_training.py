@@ -102,6 +102,7 @@ def test_train_all_writes_each_model_with_its_manifest(trained):
     assert policy.items["policy"].payload(ModelInfo).critical_channel == "segmenter"
     assert policy.fingerprint.upstream["segmenter"] == read_manifest(model_dir(run, "segmenter")).items["segmenter"].checksum
     assert any("steps/s" in line and "ETA" in line for line in lines)
+    assert any("the segmenter's pass: sample" in line and "samples/s" in line for line in lines)  # before the policy's steps
     assert "policy: done in" in (run / LOG_FILE).read_text()  # the run's training log holds the same lines
     assert 0.0 <= read_manifest(model_dir(run, "segmenter")).items["segmenter"].payload(ModelInfo).metrics["iou"] <= 1.0
 
