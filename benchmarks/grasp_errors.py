@@ -45,7 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from anchordp3.models.objects import cluster_critical_points  # noqa: E402
+from anchordp3.models.objects import object_tokens, token_centroids  # noqa: E402
 from anchordp3.pipeline.evaluation import eval_run_config, models_folder  # noqa: E402
 from anchordp3.schemas.evaluation import EvalOptions  # noqa: E402
 from anchordp3.schemas.episode import parse_seeds  # noqa: E402
@@ -111,18 +111,15 @@ def expert_scene(task: str, seed: int, cfg) -> ExpertScene:
 
 def token_centres(models: EvalModels, points: np.ndarray, state: np.ndarray, task_id: int) -> np.ndarray:
     """The policy's object tokens' centroids at one observation, ``(k, 3)`` metres (NaN for an
-    object without points): role j + 1's points with role tokens, else the k-means clusters."""
+    object without points), as the policy makes its tokens (``models.objects.object_tokens``): role
+    j + 1's points with role tokens, else the k-means clusters."""
     obs = models.observation(points, state, task_id)
     cfg = models.policy.config.objects
-    k = cfg.tokens if cfg is not None else 2
-    xyz = obs["points"][0, :, :3]
-    if obs["roles"] is not None and cfg is not None and cfg.source == "roles":
-        roles = obs["roles"][0]
-        return np.stack([xyz[roles == r + 1].mean(0).numpy() if bool((roles == r + 1).any()) else np.full(3, np.nan)
-                         for r in range(k)])
-    critical = obs["points"][0, :, -1] > 0.5
-    _, centres = cluster_critical_points(xyz[None], critical[None], k, cfg.z_weight if cfg is not None else 1.0)
-    return centres[0].numpy()
+    roles = obs["roles"] if cfg is not None and cfg.source == "roles" else None
+    tokens = object_tokens(obs["points"], obs["state"], models.policy.layout, cfg.tokens if cfg is not None else 2,
+                           z_weight=cfg.z_weight if cfg is not None else 1.0, roles=roles)
+    centres, present = token_centroids(tokens)
+    return np.where(present[0, :, None].numpy(), centres[0].numpy(), np.nan)
 
 
 @dataclass
