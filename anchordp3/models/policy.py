@@ -30,7 +30,7 @@ from anchordp3.models.kernels import fast_kernels
 from anchordp3.models.normalizer import MinMaxNormalizer
 from anchordp3.models.objects import (ObjectTokenEncoder, finger_yaw, held_tokens, nearest_branch, nearest_token_gates,
                                       object_tokens, pair_offsets, token_features, token_gripper_offsets,
-                                      token_yaw, top_down_rot6)
+                                      token_heading, token_yaw, top_down_rot6)
 from anchordp3.models.unet1d import ConditionalUnet1D
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
@@ -53,6 +53,7 @@ def make_scheduler(config: DiffusionSchedulerConfig):
 GATE_HIDDEN = 256  # anchor gating: width of the classifier's hidden layer
 FIT_MIN_ANCHORS = 20  # labelled anchors a (task, offset, arm) needs before its yaw is fitted
 FIT_CONCENTRATION = 0.95  # mean resultant length of 2 x (finger yaw - axis yaw) needed: a spread of about 9 degrees
+HELD_FIT_CONCENTRATION = 0.8  # of (turn + held object's heading): a heading read half a turn off in under a tenth of frames
 FIT_MIN_ANISOTROPY = 0.2  # objects rounder than this in a frame tell no axis; their anchors are not fitted on
 YAW_BINS = 360  # one-degree bins of the expert's finger yaws, whose widest empty arc tells the branch it prefers
 YAW_STRAY = 0.005  # a bin holding under this share of a fit's anchors counts as empty (a stray anchor splits no arc)
@@ -106,7 +107,8 @@ class AnchorDiffusionPolicy(nn.Module):
         self.objects = objects = config.objects  # the object head's settings, or None
         if objects is not None:
             self.object_encoder = ObjectTokenEncoder(objects.tokens, out_dim=objects.encoder_dim,
-                                                     features=token_features(objects.orientation, objects.half_angle))
+                                                     features=token_features(objects.orientation, objects.half_angle,
+                                                                             objects.heading))
         self.unet = ConditionalUnet1D(config.action_dim, config.cond_dim, config.unet)
         self.point_normalizer = MinMaxNormalizer(self.point_channels)
         self.state_normalizer = MinMaxNormalizer(config.action_dim)
@@ -122,6 +124,8 @@ class AnchorDiffusionPolicy(nn.Module):
             self.register_buffer("choice_xyz", torch.zeros(config.num_tasks, objects.gate_choices, len(ARMS), 3))
         if objects is not None and objects.anchored_yaw:  # (task, offset, arm) -> yaw offset, preferred yaw, fitted (0/1)
             self.register_buffer("choice_yaw", torch.zeros(config.num_tasks, objects.gate_choices, len(ARMS), 3))
+        if objects is not None and objects.held_yaw:  # (task, offset, arm) -> heading the held object is turned to, fitted (0/1)
+            self.register_buffer("held_yaw", torch.zeros(config.num_tasks, objects.gate_choices, len(ARMS), 2))
 
     # ------------------------------------------------------------------------------ setup
     @property
@@ -173,7 +177,8 @@ class AnchorDiffusionPolicy(nn.Module):
     def _tokens(self, obs: Mapping[str, torch.Tensor], points: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """The object head's tokens of ``obs`` (``models.objects.object_tokens`` with the head's settings)."""
         return object_tokens(points, state, self.layout, self.objects.tokens, orientation=self.objects.orientation,
-                             z_weight=self.objects.z_weight, roles=self._roles(obs), half_angle=self.objects.half_angle)
+                             z_weight=self.objects.z_weight, roles=self._roles(obs), half_angle=self.objects.half_angle,
+                             heading=self.objects.heading)
 
     def gates(self, cond: torch.Tensor) -> torch.Tensor:
         """The anchored offsets' gates from ``cond (B, cond_dim)``: ``(B, H, arms, gate_choices)``
@@ -196,21 +201,23 @@ class AnchorDiffusionPolicy(nn.Module):
         gate_choices)`` (``gates``, or the labels in training), scaled as the
         relative-target normaliser scales those dims. With ``choice_offsets`` each offset also adds
         its fitted constant, and with ``anchored_yaw`` an offset whose yaw was fitted sets arm a's
-        rotation to the top-down one of its object's axis yaw plus the fitted offset (``fit_choices``),
-        both per task: these need ``state (B, D)`` data units and ``task_id (B,)`` model ids."""
+        rotation to the top-down one of its object's axis yaw plus the fitted offset, with ``held_yaw``
+        a place's rotation to the one that turns the held object to the fitted heading
+        (``fit_choices``), all per task: these need ``state (B, D)`` data units and ``task_id (B,)``
+        model ids."""
         if gates is None or tokens is None:
             return 0.0
         h, d = self.config.horizon, self.config.action_dim
         shift = gates.new_zeros((gates.shape[0], h, d), dtype=torch.float32)
         offsets = pair_offsets(tokens) if self.objects.held_offsets else token_gripper_offsets(tokens.float())  # (B, G, arms, 3)
         rotations = None
-        if self.objects.choice_offsets or self.objects.anchored_yaw:
+        if self.objects.choice_offsets or self.objects.anchored_yaw or self.objects.held_yaw:
             if state is None or task_id is None:
-                raise ValueError("anchored_shift: choice_offsets and anchored_yaw need the state and the task ids")
+                raise ValueError("anchored_shift: choice_offsets, anchored_yaw and held_yaw need the state and the task ids")
             task_id = torch.as_tensor(task_id, device=offsets.device).long().reshape(-1)
             if self.objects.choice_offsets:
                 offsets = offsets + self.choice_xyz[task_id]
-            if self.objects.anchored_yaw:
+            if self.objects.anchored_yaw or self.objects.held_yaw:
                 rotations = self._anchored_rotations(tokens, state.float(), task_id)  # (B, G, arms, 6)
         for a, arm in enumerate(ARMS):
             shift[:, :, self.layout.ee_xyz(arm)] = torch.einsum("bhk,bkc->bhc", gates[:, :, a].float(), offsets[:, :, a])
@@ -224,17 +231,43 @@ class AnchorDiffusionPolicy(nn.Module):
         return torch.arange(self.objects.gate_choices, device=device) // (k if self.objects.held_offsets else 1)
 
     def _anchored_rotations(self, tokens: torch.Tensor, state: torch.Tensor, task_id: torch.Tensor) -> torch.Tensor:
-        """``(B, gate_choices, arms, 6)``: per choice and arm, the fitted top-down rotation of its object's
-        axis yaw minus the arm's rotation now (``R[:3, :2]`` units), 0 where no yaw was fitted or the
-        object tells no axis in this frame (anisotropy at most ``FIT_MIN_ANISOTROPY``, as in the fit;
-        an absent object's is 0)."""
-        theta, anisotropy = token_yaw(tokens)  # (B, K)
-        obj = self._choice_objects(tokens.device)
-        fit = self.choice_yaw[task_id]  # (B, G, arms, 3): offset, preferred, fitted
-        yaw = nearest_branch(theta[:, obj, None] + fit[..., 0], fit[..., 1])  # (B, G, arms)
+        """``(B, gate_choices, arms, 6)``: per choice and arm, the fitted top-down rotation minus the arm's
+        rotation now (``R[:3, :2]`` units), 0 where none applies: with ``held_yaw`` where it was fitted
+        and the arm holds the pair's object (``_held_yaws``), else with ``anchored_yaw`` its object's
+        axis yaw plus the fitted offset, where fitted and the object tells an axis in this frame
+        (anisotropy above ``FIT_MIN_ANISOTROPY``, as in the fit; an absent object's is 0)."""
+        yaw = tokens.new_zeros((tokens.shape[0], self.objects.gate_choices, len(ARMS)), dtype=torch.float32)
+        use = torch.zeros_like(yaw)
+        if self.objects.anchored_yaw:
+            theta, anisotropy = token_yaw(tokens)  # (B, K)
+            obj = self._choice_objects(tokens.device)
+            fit = self.choice_yaw[task_id]  # (B, G, arms, 3): offset, preferred, fitted
+            yaw = nearest_branch(theta[:, obj, None] + fit[..., 0], fit[..., 1])  # (B, G, arms)
+            use = fit[..., 2] * (anisotropy[:, obj, None] > FIT_MIN_ANISOTROPY).float()
+        if self.objects.held_yaw:
+            held, ok = self._held_yaws(tokens, state)
+            ok = ok * self.held_yaw[task_id][..., 1]
+            yaw = torch.where(ok > 0, held + self.held_yaw[task_id][..., 0], yaw)
+            use = torch.maximum(use, ok)
         now = torch.stack([state[:, self.layout.ee_rot6(arm)] for arm in ARMS], dim=1)  # (B, arms, 6)
-        use = fit[..., 2] * (anisotropy[:, obj, None] > FIT_MIN_ANISOTROPY).float()  # an absent object's is 0
         return (top_down_rot6(yaw) - now[:, None]) * use[..., None]
+
+    def _held_yaws(self, tokens: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """For ``held_yaw``: per (pair choice g = (k, j), arm), the arm's finger yaw now less held object
+        j's heading (``token_heading``), radians ``(B, G, arms)``: a place that turns j to heading c has
+        its finger yaw at this plus c. And where that holds ``(B, G, arms)`` 0/1: the arm holds j
+        (``held_tokens``, j != k), points straight down, and j tells an axis (anisotropy above
+        ``FIT_MIN_ANISOTROPY``)."""
+        k = self.objects.tokens
+        grippers = torch.stack([state[:, self.layout.gripper(arm)] for arm in ARMS], dim=-1)
+        holds = held_tokens(tokens, grippers)  # (B, arms, K)
+        heading, anisotropy = token_heading(tokens)  # (B, K)
+        psi, down = finger_yaw(torch.stack([state[:, self.layout.ee_rot6(arm)] for arm in ARMS], dim=1))  # (B, arms)
+        choice = torch.arange(self.objects.gate_choices, device=tokens.device)
+        target, j = choice // k, choice % k
+        ok = holds[:, :, j].transpose(1, 2) * (target != j).float()[None, :, None]  # (B, G, arms)
+        ok = ok * down[:, None, :].float() * (anisotropy[:, j] > FIT_MIN_ANISOTROPY).float()[..., None]
+        return psi[:, None, :] - heading[:, j, None], ok
 
     @torch.no_grad()
     def fit_choices(self, batches) -> list[dict[str, float]]:
@@ -245,12 +278,17 @@ class AnchorDiffusionPolicy(nn.Module):
         above ``FIT_MIN_ANISOTROPY``), the circular mean of their finger yaw less the axis yaw, modulo
         π (a parallel gripper closes alike turned half a turn), and the branch the expert takes
         (``preferred_yaw`` of their yaws); a yaw is used where ``FIT_MIN_ANCHORS`` agree within
-        ``FIT_CONCENTRATION``.
-        Returns one row per fitted yaw: task (model id), choice, arm, anchors, offset (deg), concentration."""
+        ``FIT_CONCENTRATION``. With ``held_yaw``, over the anchors of a pair (k, j) taken while the arm
+        holds j (``_held_yaws``) and pointing straight down, the circular mean of their finger yaw less
+        (the finger yaw now less j's heading): the heading j is turned to, used where
+        ``FIT_MIN_ANCHORS`` agree within ``HELD_FIT_CONCENTRATION``.
+        Returns one row per fitted yaw: kind ("axis" or "held"), task (model id), choice, arm, anchors,
+        offset (deg: from the axis, or the held object's heading), concentration."""
         t, g, arms = self.config.num_tasks, self.objects.gate_choices, len(ARMS)
         cells = t * g * arms
         count, xyz = torch.zeros(cells), torch.zeros(cells, 3)
         n_yaw, double, heading = torch.zeros(cells), torch.zeros(cells, 2), torch.zeros(cells, YAW_BINS)
+        n_held, turned = torch.zeros(cells), torch.zeros(cells, 2)
         obj = self._choice_objects(torch.device("cpu"))
         for batch in batches:  # the tokens alone: the encoders' condition is not needed
             points, state, task = self._observation(batch)
@@ -260,6 +298,7 @@ class AnchorDiffusionPolicy(nn.Module):
             labels = self.gate_targets(tokens, anchors, state)  # (B, H, arms, G)
             offsets = pair_offsets(tokens) if self.objects.held_offsets else token_gripper_offsets(tokens)
             theta, anisotropy = token_yaw(tokens) if self.objects.anchored_yaw else (None, None)
+            held, held_ok = self._held_yaws(tokens, state) if self.objects.held_yaw else (None, None)
             rows = torch.arange(len(tokens))[:, None]
             for a, arm in enumerate(ARMS):
                 sel, choice = labels[:, :, a].sum(-1) > 0, labels[:, :, a].argmax(-1)  # (B, H)
@@ -268,9 +307,14 @@ class AnchorDiffusionPolicy(nn.Module):
                 delta = anchors[:, :, self.layout.ee_xyz(arm)] - state[:, None, self.layout.ee_xyz(arm)]
                 count.index_add_(0, cell, torch.ones(len(cell)))
                 xyz.index_add_(0, cell, (delta - offsets[rows, choice, a])[sel])
+                yaw, down = finger_yaw(anchors[:, :, self.layout.ee_rot6(arm)])
+                if held is not None:
+                    ok = sel & down & (held_ok[rows, choice, a] > 0)
+                    turn = yaw - held[rows, choice, a]
+                    n_held.index_add_(0, cells_of[ok], torch.ones(int(ok.sum())))
+                    turned.index_add_(0, cells_of[ok], torch.stack([turn.cos(), turn.sin()], -1)[ok])
                 if theta is None:
                     continue
-                yaw, down = finger_yaw(anchors[:, :, self.layout.ee_rot6(arm)])
                 k = obj[choice]  # (B, H) the object each anchor lies by
                 ok = sel & down & (anisotropy[rows, k] > FIT_MIN_ANISOTROPY)
                 diff = 2 * (yaw - theta[rows, k])
@@ -285,11 +329,24 @@ class AnchorDiffusionPolicy(nn.Module):
         offset = torch.atan2(mean[:, 1], mean[:, 0]) / 2
         if self.objects.choice_offsets:
             self.choice_xyz.copy_((xyz / count.clamp(min=1)[:, None]).view(t, g, arms, 3))
-        if not self.objects.anchored_yaw:
-            return []
-        self.choice_yaw.copy_(torch.stack([offset, preferred_yaw(heading), fitted.float()], -1).view(t, g, arms, 3))
-        return [{"task": int(i // (g * arms)), "choice": int(i // arms % g), "arm": ARMS[int(i % arms)],
-                 "anchors": int(n_yaw[i]), "offset_deg": float(torch.rad2deg(offset[i])),
+        rows = []
+        if self.objects.anchored_yaw:
+            self.choice_yaw.copy_(torch.stack([offset, preferred_yaw(heading), fitted.float()], -1).view(t, g, arms, 3))
+            rows += self._fit_rows("axis", fitted, n_yaw, offset, concentration)
+        if self.objects.held_yaw:
+            mean = turned / n_held.clamp(min=1)[:, None]
+            concentration, offset = mean.norm(dim=-1), torch.atan2(mean[:, 1], mean[:, 0])
+            fitted = (n_held >= FIT_MIN_ANCHORS) & (concentration >= HELD_FIT_CONCENTRATION)
+            self.held_yaw.copy_(torch.stack([offset, fitted.float()], -1).view(t, g, arms, 2))
+            rows += self._fit_rows("held", fitted, n_held, offset, concentration)
+        return rows
+
+    def _fit_rows(self, kind: str, fitted: torch.Tensor, anchors: torch.Tensor, offset: torch.Tensor,
+                  concentration: torch.Tensor) -> list[dict]:
+        """``fit_choices``' rows of the fitted cells (``(cells,)`` each, cell = (task x choice + g) x arms + a)."""
+        g, arms = self.objects.gate_choices, len(ARMS)
+        return [{"kind": kind, "task": int(i // (g * arms)), "choice": int(i // arms % g), "arm": ARMS[int(i % arms)],
+                 "anchors": int(anchors[i]), "offset_deg": float(torch.rad2deg(offset[i])),
                  "concentration": float(concentration[i])} for i in torch.nonzero(fitted).flatten()]
 
     def compute_loss(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:

@@ -278,6 +278,12 @@ class ObjectHeadConfig(_Config):
                     "in (-90°, 90°] (models.objects.half_angle_axis): a top-down grasp across or along the axis turns "
                     "its fingers by θ, which (cos 2θ, sin 2θ) gives only through a half-angle the network has to learn "
                     "(the phone's wrist ignored its yaw, ladder rung D7).")
+    heading: bool = Field(
+        default=False,
+        description="With orientation, each token also carries its principal axis as an arrow, anisotropy x (cos h, "
+                    "sin h), h pointing away from the object's tall part (models.objects.heading_axis): a shoe's heel "
+                    "to toe. An axis is a line and cannot tell a shoe's toes from its heel (their toes turned wrong in "
+                    "25 of 30 scenes, ladder rung D9).")
     z_weight: float = Field(
         default=1.0, gt=0,
         description="The tokens' clustering counts heights this many times over: above 1, an object held over another "
@@ -325,6 +331,14 @@ class ObjectHeadConfig(_Config):
                     "data: the yaw's offset from the axis and the branch the expert takes, kept where they agree within "
                     "about 13 degrees), the picked offset also sets the anchor's rotation from the object's axis "
                     "(the phone's grasp wrist was 23 degrees off when learnt through the condition, ladder rung D7).")
+    held_yaw: bool = Field(
+        default=False,
+        description="With held_offsets and heading, where the labelled anchors of a (task, offset relative to a held "
+                    "object, arm) point straight down and turn the held object to one heading (fitted on the training "
+                    "data, kept where their resultant length is at least 0.8: a heading read half a turn off in under "
+                    "a tenth of the frames), a place taken while the arm holds that object gets the rotation that "
+                    "turns it there: the finger yaw now, less the object's heading, plus the fitted heading (the "
+                    "shoes' toes, ladder rung D11).")
     gate_radius: float = Field(
         default=0.15, gt=0,
         description="Metres: an anchor further than this from every token's centroid belongs to no object (its gates' "
@@ -344,6 +358,11 @@ class ObjectHeadConfig(_Config):
             raise ValueError(f"{'choice_offsets' if self.choice_offsets else 'anchored_yaw'}: needs anchored_offsets")
         if self.anchored_yaw and not self.orientation:
             raise ValueError("anchored_yaw: needs orientation (the yaw of each object's principal axis)")
+        if self.heading and not self.orientation:
+            raise ValueError("heading: needs orientation (the principal axis it points along)")
+        if self.held_yaw and not (self.held_offsets and self.heading):
+            raise ValueError(f"held_yaw: needs {'held_offsets' if not self.held_offsets else 'heading'} "
+                             "(offsets relative to the held object, and its heading)")
         if self.stay_radius and not self.anchored_offsets:
             raise ValueError("stay_radius: needs anchored_offsets")
         if self.source == "roles" and self.z_weight != 1.0:

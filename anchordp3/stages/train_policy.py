@@ -152,7 +152,7 @@ class PolicyJob(TrainingJob):
         self.model = AnchorDiffusionPolicy(self.cfg.model, mixed_precision=config.mixed_precision)
         self.model.set_normalizers(self.normalizer_stats())
         self.model.to(device)
-        if objects is not None and (objects.choice_offsets or objects.anchored_yaw):
+        if objects is not None and (objects.choice_offsets or objects.anchored_yaw or objects.held_yaw):
             self.fit_choices()
         self.model.train()
         self.ema = ExponentialMovingAverage(self.model, self.cfg.ema)
@@ -173,8 +173,9 @@ class PolicyJob(TrainingJob):
         names = {m: t for t, m in zip(self.data.tasks, self.task_lut.tolist())}
         log.info(f"policy: per-choice offsets fitted on {len(picks)} samples; yaw anchored for {len(rows)} (task, choice, arm)")
         for r in rows:
-            log.info(f"  {names.get(r['task'], r['task'])} choice {r['choice']} {r['arm']}: {r['anchors']} anchors, yaw "
-                     f"offset {r['offset_deg']:+.1f} deg, concentration {r['concentration']:.3f}")
+            log.info(f"  {names.get(r['task'], r['task'])} choice {r['choice']} {r['arm']}: {r['anchors']} anchors, "
+                     f"{'heading' if r['kind'] == 'held' else 'yaw offset'} {r['offset_deg']:+.1f} deg, "
+                     f"concentration {r['concentration']:.3f}")
 
     def normalizer_stats(self) -> dict[str, dict[str, list]]:
         """Min/max of state, anchors and the 11 point channels from the dataset statistics, and for

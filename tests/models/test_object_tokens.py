@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.objects import (POSITION_SCALE, TOKEN_FEATURES, cluster_critical_points, nearest_branch, nearest_token_gates,
-                                      object_tokens, pair_offsets, token_features, top_down_rot6)
+                                      object_tokens, pair_offsets, token_features, token_heading, token_yaw, top_down_rot6)
 from anchordp3.models.policy import AnchorDiffusionPolicy
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.training import PolicyConfig
@@ -594,3 +594,91 @@ def test_anchored_yaw_turns_a_grasps_wrist_with_the_objects_axis_where_the_exper
     assert (other.anchored_shift(labels, tokens, unseen["state"], unseen["task_id"])[:, :, rot] == 0).all()
     with pytest.raises(ValidationError, match="anchored_yaw: needs orientation"):
         head(ANCHORED, anchored_yaw=True)
+
+
+def shoe_scene(heading: float, psi: float, seed: int) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """A shoe-like object (a 10 x 5 cm grid, its back 4 cm raised 3 cm: the heel's collar; toes along
+    ``heading`` radians) held by the closed left gripper (top-down, finger yaw ``psi``, 2 cm above its
+    centroid) somewhere near (-0.15, 0.05), and a flat 8 x 8 cm target at (0.15, 0.1), on 300 table
+    points; labelled 'to 5 cm above the target, the shoe turned to +90°' (finger yaw ``psi + 90° -
+    heading``), as the shoes' expert places. Returns the batch of one and the shoe's centroid (3,)."""
+    g = torch.Generator().manual_seed(seed)
+    u, v = torch.meshgrid((torch.arange(20) + 0.5) / 20 - 0.5, (torch.arange(10) + 0.5) / 10 - 0.5, indexing="ij")
+    local = torch.stack([u.reshape(-1) * 0.10, v.reshape(-1) * 0.05], dim=1)
+    c, s = math.cos(heading), math.sin(heading)
+    centre = torch.tensor([-0.15, 0.05]) + (torch.rand(2, generator=g) - 0.5) * 0.1
+    xy = local @ torch.tensor([[c, s], [-s, c]]) + centre
+    shoe = torch.cat([xy, (0.77 + 0.03 * (local[:, :1] < -0.01)).float()], dim=1)
+    a, b = torch.meshgrid(torch.linspace(-0.04, 0.04, 10), torch.linspace(-0.04, 0.04, 10), indexing="ij")
+    target = torch.stack([a.reshape(-1) + 0.15, b.reshape(-1) + 0.1, torch.full((100,), 0.75)], dim=1)
+    table = torch.rand(300, 3, generator=g) * torch.tensor([0.8, 0.6, 0.0]) - torch.tensor([0.4, 0.3, -0.74])
+    xyz = torch.cat([table, shoe, target])
+    label = torch.cat([torch.zeros(300), torch.ones(300)])
+    points = append_critical_probability(torch.cat([xyz, torch.rand(len(xyz), 8, generator=g)], dim=1)[None], label[None])
+    state = torch.rand(1, 32, generator=g)
+    left, rot = LAYOUT.ee_xyz("left"), LAYOUT.ee_rot6("left")
+    state[0, left] = shoe.mean(0) + torch.tensor([0.0, 0.0, 0.02])
+    state[0, rot] = top_down_rot6(torch.tensor(psi))
+    state[0, LAYOUT.gripper("left")], state[0, LAYOUT.gripper("right")] = 0.3, 1.0
+    anchor = state[0].clone()
+    anchor[left] = target.mean(0) + torch.tensor([0.0, 0.0, 0.05])
+    anchor[rot] = top_down_rot6(torch.tensor(psi + math.pi / 2 - heading))
+    return {"points": points, "state": state, "anchors": anchor.expand(1, 8, 32).clone(),
+            "task_id": torch.zeros(1, dtype=torch.long)}, shoe.mean(0)
+
+
+def shoe_batch(seeds: range) -> dict[str, torch.Tensor]:
+    """``shoe_scene`` at headings over the whole circle and finger yaws over the wrist's range."""
+    rows = [shoe_scene(math.radians(-175 + 37 * s % 360), math.radians(-150 + 53 * s % 300), s)[0] for s in seeds]
+    return {k: torch.cat([r[k] for r in rows]) for k in rows[0]}
+
+
+def test_the_heading_points_from_an_objects_tall_part_to_its_other_end_over_the_whole_circle() -> None:
+    for d in range(-175, 180, 25):
+        batch, _ = shoe_scene(math.radians(d), 0.0, d + 200)
+        tokens = object_tokens(batch["points"], batch["state"], LAYOUT, 2, orientation=True, half_angle=True, heading=True)
+        assert tokens.shape[-1] == token_features(True, True, True) == TOKEN_FEATURES + 6
+        shoe = 0  # 200 points against the target's 100: the largest cluster first
+        heading, anisotropy = token_heading(tokens)
+        assert anisotropy[0, shoe] > 0.5
+        assert abs(math.remainder(float(heading[0, shoe]) - math.radians(d), 2 * math.pi)) < math.radians(3)
+        # the axis alone is the same line for the shoe turned half a turn
+        axis, _ = token_yaw(tokens)
+        assert abs(math.remainder(float(axis[0, shoe]) - math.radians(d), math.pi)) < math.radians(3)
+    # without the option the token is as before
+    plain = object_tokens(batch["points"], batch["state"], LAYOUT, 2, orientation=True, half_angle=True)
+    torch.testing.assert_close(plain, tokens[..., :-2])
+    with pytest.raises(ValidationError, match="heading: needs orientation"):
+        head(ANCHORED, heading=True)
+
+
+HEADING = head(HELD, orientation=True, heading=True, held_yaw=True)
+
+
+def test_held_yaw_turns_the_held_object_to_the_heading_its_places_agree_on() -> None:
+    train = shoe_batch(range(40))
+    policy = AnchorDiffusionPolicy(HEADING)
+    policy.set_normalizers(stats_of(train))
+    rows = policy.fit_choices([train])
+    assert [(r["kind"], r["task"], r["choice"], r["arm"]) for r in rows] == [("held", 0, 2, "left")]  # (target 1, held shoe 0): 1 x 2 + 0
+    assert abs(rows[0]["offset_deg"] - 90.0) < 3.0 and rows[0]["concentration"] > 0.99
+    unseen = shoe_batch(range(100, 106))
+    tokens = policy._tokens(unseen, unseen["points"], unseen["state"])
+    labels = policy.gate_targets(tokens, unseen["anchors"], unseen["state"])
+    assert labels[:, :, 0, 2].all()
+    shift = policy.anchored_shift(labels, tokens, unseen["state"], unseen["task_id"]) / policy.delta_normalizer.scale.view(8, 32)
+    rot = LAYOUT.ee_rot6("left")
+    exact = unseen["anchors"][:, :, rot] - unseen["state"][:, None, rot]
+    assert (shift[:, :, rot] - exact).abs().max() < 0.06  # the wrist within about 3 degrees, over any heading
+    # a gripper that holds nothing turns nothing
+    opened = {**unseen, "state": unseen["state"].clone()}
+    opened["state"][:, LAYOUT.gripper("left")] = 1.0
+    assert (policy.anchored_shift(labels, tokens, opened["state"], unseen["task_id"])[:, :, rot] == 0).all()
+    # places whose turn has nothing to do with the held object's heading fit nothing
+    unrelated = shoe_batch(range(40))
+    unrelated["anchors"][:, :, rot] = torch.stack([top_down_rot6(torch.tensor(1.1 * math.sin(3.0 * i))) for i in range(40)])[:, None]
+    other = AnchorDiffusionPolicy(HEADING)
+    other.set_normalizers(stats_of(unrelated))
+    assert other.fit_choices([unrelated]) == []
+    with pytest.raises(ValidationError, match="held_yaw: needs heading"):
+        head(HELD, orientation=True, held_yaw=True)

@@ -168,7 +168,8 @@ def test_the_policys_fitted_choice_offsets_and_yaws_travel_in_its_checkpoint(tra
     data = open_dataset(stage_dir(trained[0], "write"))
     raw = copy.deepcopy(TRAIN)
     raw["policy"]["optim"]["steps"] = 3
-    raw["policy"]["model"].update(preset="recipe", objects={"choice_offsets": True, "anchored_yaw": True})
+    raw["policy"]["model"].update(preset="recipe", objects={"choice_offsets": True, "anchored_yaw": True,
+                                                             "heading": True, "held_yaw": True})
     cfg = TrainingConfig.model_validate({**raw, "device": "cpu"})
     with Capture() as cap:
         job = PolicyJob(data, cfg, torch.device("cpu"), CriticalChannel("ground_truth"))
@@ -178,6 +179,7 @@ def test_the_policys_fitted_choice_offsets_and_yaws_travel_in_its_checkpoint(tra
     res = run_training(job, tmp_path / "pol", cfg.loop, "fp")
     loaded = load_policy(res.model_path)
     assert torch.equal(loaded.choice_xyz, fitted) and torch.equal(loaded.choice_yaw, job.model.choice_yaw)
+    assert torch.equal(loaded.held_yaw, job.model.held_yaw) and loaded.objects.heading
 
 
 def test_stopped_or_crashed_training_resumes_to_the_same_step_and_weights(trained, tmp_path, monkeypatch):
