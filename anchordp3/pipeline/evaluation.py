@@ -177,6 +177,8 @@ def evaluation_fingerprint(ctx: BatchContext, cfg: RunConfig) -> Fingerprint:
         part["ddim_steps"] = opts.ddim_steps
     if opts.samples != 1:
         part["samples"] = opts.samples
+    if opts.skip_reached:
+        part["skip_reached"] = opts.skip_reached
     return Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([PROTOCOL_MODULE]),  # read, not imported: the driver stays free of the simulator
                        config_hash=config_hash(part), upstream=upstream)
 
@@ -233,7 +235,8 @@ def run_episode(run_dir: Path, cfg: RunConfig, item: BatchItem) -> StageOutput:
     task, seed = episode_key(item.id)
     models = _models(models_folder(run_dir, opts.models), actor_device(opts.device), opts.ddim_steps, opts.samples)
     strip = f"strips/{task}/{seed:06d}.png" if seed in selected_seeds(ev, opts)[:opts.strips] else None
-    rec = evaluate_episode(task, seed, models, ev, opts.max_decisions, item.folder / strip if strip else None, opts.through).to_dict()
+    rec = evaluate_episode(task, seed, models, ev, opts.max_decisions, item.folder / strip if strip else None, opts.through,
+                           skip_reached=opts.skip_reached).to_dict()
     rel = f"episodes/{task}/{seed:06d}.json"
     atomic_write_bytes(item.folder / rel, json.dumps(rec, indent=1).encode())
     log.info(f"{'success' if rec['success'] else rec['failure']} ({rec['steps']} steps, {rec['decisions']} decisions)")

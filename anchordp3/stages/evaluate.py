@@ -39,7 +39,7 @@ from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.instructions import episode_instruction
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.stages import AnchorsConfig
-from anchordp3.schemas.state import ARMS
+from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.tasks import TASK_NAMES, task_id
 from anchordp3.sim.closed_loop import EvalEpisode, Observation
 from anchordp3.sim.tasks.base import LayoutFailure
@@ -169,14 +169,35 @@ def decision_seed(task: str, seed: int, decision: int) -> int:
 
 
 
-def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig, through: str = "pose") -> int:
-    """Carry out one decision's prediction ``pred (H, 32)``: the first anchor by a smooth motion to
-    its end-effector poses (``through="pose"``, IK) or its joint angles (``"joints"``, the report),
+ROT_REACHED = 0.1  # rot6 entries: an anchor's rotation within about 6 degrees of the arm's counts as reached
+GRIPPER_SKIP = 0.2  # normalised opening: a predicted gripper this near the arm's counts as reached
+
+
+def first_unreached(pred: np.ndarray, state: np.ndarray, within: float) -> int:
+    """The first slot of ``pred (H, D)`` the robot in ``state (D,)`` (data units) is not already at:
+    some arm's end effector further than ``within`` metres from it, its rotation more than
+    ``ROT_REACHED`` off in any rot6 entry, or its gripper more than ``GRIPPER_SKIP``; 0 where it
+    is at every slot (nothing left to do but stand)."""
+    layout = StateLayout.of_length(state.shape[-1])
+    for h, anchor in enumerate(pred):
+        for arm in ARMS:
+            if (np.linalg.norm(anchor[layout.ee_xyz(arm)] - state[layout.ee_xyz(arm)]) > within
+                    or np.abs(anchor[layout.ee_rot6(arm)] - state[layout.ee_rot6(arm)]).max() > ROT_REACHED
+                    or abs(float(anchor[layout.gripper(arm)] - state[layout.gripper(arm)])) > GRIPPER_SKIP):
+                return h
+    return 0
+
+
+def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig, through: str = "pose", skip_reached: float = 0.0) -> int:
+    """Carry out one decision's prediction ``pred (H, 32)``: the first anchor (with ``skip_reached``
+    metres, the first the robot is not already at, ``first_unreached``) by a smooth motion to its
+    end-effector poses (``through="pose"``, IK) or its joint angles (``"joints"``, the report),
     or, for a run of the dense plan (predicted commanded actions), a chunk of ``dense.execute``
     actions at the plan's spacing. Returns the control steps used."""
     if cfg.plan == "dense":
         return ep.follow(pred[:cfg.dense.execute], cfg.dense.action_stride)
-    return ep.execute(pred[0], through)
+    first = first_unreached(pred, ep.robot.state(), skip_reached) if skip_reached else 0
+    return ep.execute(pred[first], through)
 
 
 STRIP_FRAMES = 8  # frames in an episode's strip picture, evenly spaced over its decisions
@@ -205,10 +226,10 @@ Watcher = Callable[[EvalEpisode, int, np.ndarray, np.ndarray], None]
 
 def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
                      max_decisions: int | None = None, strip: Path | None = None, through: str = "pose",
-                     watch: Watcher | None = None) -> EvalRecord:
+                     watch: Watcher | None = None, skip_reached: float = 0.0) -> EvalRecord:
     """Run one closed-loop episode of ``task`` on ``seed`` with ``models``; see the module docstring.
     strip: when given, the head camera's view at each decision and at the end is drawn there.
-    through: how anchors are carried out (``act``). watch: called at each decision, before the
+    through, skip_reached: how anchors are carried out (``act``). watch: called at each decision, before the
     prediction is carried out, with ``(episode, decision, points (N, 11), prediction (H, 32))``
     (diagnostics, e.g. ``benchmarks/grasp_errors.py``; it must not change the episode)."""
     t0 = time.perf_counter()
@@ -263,7 +284,7 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
         pred = models.anchors(points, obs.state, predicted, s)
         if watch is not None:
             watch(ep, decisions, points, pred)
-        act(ep, pred, cfg.anchors, through)
+        act(ep, pred, cfg.anchors, through, skip_reached)
         moved = float(np.abs(ep.robot.state()[joints] - obs.state[joints]).max())
         trace.append(DecisionTrace(moved, tuple(float(g) for g in ep.gripper_commands()), ep.lift()))
         decisions += 1

@@ -89,3 +89,26 @@ def test_executing_through_the_pose_puts_the_gripper_where_the_anchor_says_despi
     assert np.linalg.norm(by_pose - pose[:3, 3]) < 2e-3 < 5e-3 < np.linalg.norm(by_joints - pose[:3, 3])
     with pytest.raises(ValueError, match="through"):
         ep.execute(wrong, through="elbows")
+
+
+def test_the_executor_carries_out_the_first_anchor_the_robot_does_not_already_stand_at(episode):
+    from anchordp3.schemas.stages import AnchorsConfig
+    from anchordp3.stages.evaluate import act, first_unreached
+
+    ep = episode
+    here = ep.robot.state().copy()
+    left = ep.layout.ee_xyz(ARMS[0])
+    near = here.copy()
+    near[left] += np.array([0.01, 0.0, 0.0])  # 1 cm off: where the robot stands, as a tracking error leaves it
+    away = _target(ep, -0.05, 1.0)
+    away[left] += np.array([0.0, 0.03, 0.0])  # the end effector moves 3 cm
+    close = here.copy()
+    close[ep.layout.gripper(ARMS[1])] = 0.0  # a close in place is not reached
+    assert first_unreached(np.stack([near, away]), here, 0.015) == 1
+    assert first_unreached(np.stack([near, close, away]), here, 0.015) == 1
+    assert first_unreached(np.stack([near, near]), here, 0.015) == 0  # nothing left to do: the first
+    assert first_unreached(np.stack([near, away]), here, 0.005) == 0
+    act(ep, np.stack([near, away]), AnchorsConfig(), "joints", skip_reached=0.015)
+    np.testing.assert_allclose(ep.robot.joint_target(), ep.joint_goal(away), atol=1e-9)
+    act(ep, np.stack([ep.robot.state(), away]), AnchorsConfig(), "joints")  # off: always the first
+    np.testing.assert_allclose(ep.robot.joint_target(), ep.joint_goal(ep.robot.state()), atol=0.02)
