@@ -41,7 +41,7 @@ from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.stages import AnchorsConfig
 from anchordp3.schemas.state import ARMS, StateLayout
 from anchordp3.schemas.tasks import TASK_NAMES, task_id
-from anchordp3.sim.closed_loop import EvalEpisode, Observation
+from anchordp3.sim.closed_loop import EvalEpisode, Observation, gripper_command
 from anchordp3.sim.tasks.base import LayoutFailure
 from anchordp3.stages.features import frame_features
 from anchordp3.stages.train_classifier import load_classifier
@@ -170,20 +170,23 @@ def decision_seed(task: str, seed: int, decision: int) -> int:
 
 
 ROT_REACHED = 0.1  # rot6 entries: an anchor's rotation within about 6 degrees of the arm's counts as reached
-GRIPPER_SKIP = 0.2  # normalised opening: a predicted gripper this near the arm's counts as reached
 
 
-def first_unreached(pred: np.ndarray, state: np.ndarray, within: float) -> int:
-    """The first slot of ``pred (H, D)`` the robot in ``state (D,)`` (data units) is not already at:
-    some arm's end effector further than ``within`` metres from it, its rotation more than
-    ``ROT_REACHED`` off in any rot6 entry, or its gripper more than ``GRIPPER_SKIP``; 0 where it
-    is at every slot (nothing left to do but stand)."""
+def first_unreached(pred: np.ndarray, state: np.ndarray, commands: np.ndarray, within: float) -> int:
+    """The first slot of ``pred (H, D)`` the robot in ``state (D,)`` (data units), its grippers
+    commanded ``commands (arms,)`` (0 closed, 1 open), is not already at: some arm's end effector
+    further than ``within`` metres from it, its rotation more than ``ROT_REACHED`` off in any rot6
+    entry, or its gripper to be commanded otherwise (``gripper_command``: a gripper closed on an
+    object stays partly open, yet its close is done); 0 where it is at every slot (nothing left to
+    do but stand)."""
     layout = StateLayout.of_length(state.shape[-1])
     for h, anchor in enumerate(pred):
+        grippers = gripper_command(np.array([anchor[layout.gripper(arm)] for arm in ARMS]))
+        if (grippers != np.asarray(commands)).any():
+            return h
         for arm in ARMS:
             if (np.linalg.norm(anchor[layout.ee_xyz(arm)] - state[layout.ee_xyz(arm)]) > within
-                    or np.abs(anchor[layout.ee_rot6(arm)] - state[layout.ee_rot6(arm)]).max() > ROT_REACHED
-                    or abs(float(anchor[layout.gripper(arm)] - state[layout.gripper(arm)])) > GRIPPER_SKIP):
+                    or np.abs(anchor[layout.ee_rot6(arm)] - state[layout.ee_rot6(arm)]).max() > ROT_REACHED):
                 return h
     return 0
 
@@ -196,7 +199,7 @@ def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig, through: str = "p
     actions at the plan's spacing. Returns the control steps used."""
     if cfg.plan == "dense":
         return ep.follow(pred[:cfg.dense.execute], cfg.dense.action_stride)
-    first = first_unreached(pred, ep.robot.state(), skip_reached) if skip_reached else 0
+    first = first_unreached(pred, ep.robot.state(), ep.gripper_commands(), skip_reached) if skip_reached else 0
     return ep.execute(pred[first], through)
 
 

@@ -102,12 +102,17 @@ def test_the_executor_carries_out_the_first_anchor_the_robot_does_not_already_st
     near[left] += np.array([0.01, 0.0, 0.0])  # 1 cm off: where the robot stands, as a tracking error leaves it
     away = _target(ep, -0.05, 1.0)
     away[left] += np.array([0.0, 0.03, 0.0])  # the end effector moves 3 cm
+    commands = ep.gripper_commands()
     close = here.copy()
     close[ep.layout.gripper(ARMS[1])] = 0.0  # a close in place is not reached
-    assert first_unreached(np.stack([near, away]), here, 0.015) == 1
-    assert first_unreached(np.stack([near, close, away]), here, 0.015) == 1
-    assert first_unreached(np.stack([near, near]), here, 0.015) == 0  # nothing left to do: the first
-    assert first_unreached(np.stack([near, away]), here, 0.005) == 0
+    assert first_unreached(np.stack([near, away]), here, commands, 0.015) == 1
+    assert first_unreached(np.stack([near, close, away]), here, commands, 0.015) == 1
+    assert first_unreached(np.stack([near, near]), here, commands, 0.015) == 0  # nothing left to do: the first
+    assert first_unreached(np.stack([near, away]), here, commands, 0.005) == 0
+    # once closed, a close is done though the gripper, stopped by the object, stays partly open
+    held = here.copy()
+    held[ep.layout.gripper(ARMS[1])] = 0.7
+    assert first_unreached(np.stack([close, away]), held, np.array([1.0, 0.0]), 0.015) == 1
     act(ep, np.stack([near, away]), AnchorsConfig(), "joints", skip_reached=0.015)
     np.testing.assert_allclose(ep.robot.joint_target(), ep.joint_goal(away), atol=1e-9)
     act(ep, np.stack([ep.robot.state(), away]), AnchorsConfig(), "joints")  # off: always the first
