@@ -14,6 +14,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 DEFAULT_EPISODES = 10  # unseen seeds per task when neither seeds nor episodes are given
+SKIP_REACHED = 0.015  # metres: the executor steps past a predicted anchor the robot stands within this of (ladder rung D10)
 Through = Literal["pose", "joints"]  # how an anchor is carried out: its end-effector poses by IK, or its joints
 
 
@@ -31,7 +32,7 @@ class EvalSettings(BaseModel):
     ddim_steps: int | None = Field(default=None, ge=1, le=100, description="DDIM steps per decision (default: the policy's own, 10 as DP3; 5 costs half and, on the shipped policy, +0.1 cm first-anchor error).")
     device: str = Field(default="auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="Torch device of the actors: auto (CUDA when the cluster has GPUs, each actor an equal share), cpu or cuda.")
     first_seed: int | None = Field(default=None, ge=0, description="First unseen evaluation seed (default: max training seed + 1000; it must lie above every training seed).")
-    skip_reached: float = Field(default=0.0, ge=0, le=0.1, description="Metres: the executor carries out the first predicted anchor the robot is not already at (an arm's end effector further than this, its rotation over about 6 degrees off, or its gripper to be opened or closed where it is not), so a first anchor where the robot stands does not hold it there (0: always the first anchor, as the report).")
+    skip_reached: float = Field(default=SKIP_REACHED, ge=0, le=0.1, description="Metres: the executor carries out the first predicted anchor the robot is not already at (an arm's end effector further than this, its rotation over about 6 degrees off, or its gripper to be opened or closed where it is not), so a first anchor where the robot stands does not hold it there (0: always the first anchor, as the report).")
     strips: int = Field(default=2, ge=0, description="Episodes per task (the first seeds) that also get a frame strip, strips/<task>/<seed>.png.")
 
 

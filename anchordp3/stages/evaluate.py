@@ -37,6 +37,7 @@ import torch
 
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.instructions import episode_instruction
+from anchordp3.schemas.evaluation import SKIP_REACHED
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.stages import AnchorsConfig
 from anchordp3.schemas.state import ARMS, StateLayout
@@ -191,7 +192,7 @@ def first_unreached(pred: np.ndarray, state: np.ndarray, commands: np.ndarray, w
     return 0
 
 
-def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig, through: str = "pose", skip_reached: float = 0.0) -> int:
+def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig, through: str = "pose", skip_reached: float = SKIP_REACHED) -> int:
     """Carry out one decision's prediction ``pred (H, 32)``: the first anchor (with ``skip_reached``
     metres, the first the robot is not already at, ``first_unreached``) by a smooth motion to its
     end-effector poses (``through="pose"``, IK) or its joint angles (``"joints"``, the report),
@@ -229,7 +230,7 @@ Watcher = Callable[[EvalEpisode, int, np.ndarray, np.ndarray], None]
 
 def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
                      max_decisions: int | None = None, strip: Path | None = None, through: str = "pose",
-                     watch: Watcher | None = None, skip_reached: float = 0.0) -> EvalRecord:
+                     watch: Watcher | None = None, skip_reached: float = SKIP_REACHED) -> EvalRecord:
     """Run one closed-loop episode of ``task`` on ``seed`` with ``models``; see the module docstring.
     strip: when given, the head camera's view at each decision and at the end is drawn there.
     through, skip_reached: how anchors are carried out (``act``). watch: called at each decision, before the

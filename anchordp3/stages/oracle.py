@@ -47,6 +47,6 @@ def oracle_episode(record: EpisodeRecord, arrays: dict[str, np.ndarray], cfg: Ru
     for pred in labels:
         if ep.success() or ep.steps >= ep.step_limit:
             break
-        act(ep, pred, cfg.anchors, through)
+        act(ep, pred, cfg.anchors, through, skip_reached=0.0)  # each label once, in order
         decisions += 1
     return OracleResult(success=ep.success(), steps=ep.steps, decisions=decisions)
