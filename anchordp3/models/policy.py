@@ -211,7 +211,7 @@ class AnchorDiffusionPolicy(nn.Module):
         shift = gates.new_zeros((gates.shape[0], h, d), dtype=torch.float32)
         offsets = pair_offsets(tokens) if self.objects.held_offsets else token_gripper_offsets(tokens.float())  # (B, G, arms, 3)
         rotations = None
-        if self.objects.choice_offsets or self.objects.anchored_yaw or self.objects.held_yaw:
+        if self.objects.fits_choices:
             if state is None or task_id is None:
                 raise ValueError("anchored_shift: choice_offsets, anchored_yaw and held_yaw need the state and the task ids")
             task_id = torch.as_tensor(task_id, device=offsets.device).long().reshape(-1)
@@ -307,6 +307,8 @@ class AnchorDiffusionPolicy(nn.Module):
                 delta = anchors[:, :, self.layout.ee_xyz(arm)] - state[:, None, self.layout.ee_xyz(arm)]
                 count.index_add_(0, cell, torch.ones(len(cell)))
                 xyz.index_add_(0, cell, (delta - offsets[rows, choice, a])[sel])
+                if held is None and theta is None:
+                    continue
                 yaw, down = finger_yaw(anchors[:, :, self.layout.ee_rot6(arm)])
                 if held is not None:
                     ok = sel & down & (held_ok[rows, choice, a] > 0)

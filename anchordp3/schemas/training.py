@@ -371,6 +371,12 @@ class ObjectHeadConfig(_Config):
         return self
 
     @property
+    def fits_choices(self) -> bool:
+        """Whether constants per (task, offset, arm) are fitted on the training data before training
+        (``choice_offsets``, ``anchored_yaw`` or ``held_yaw``; ``AnchorDiffusionPolicy.fit_choices``)."""
+        return self.choice_offsets or self.anchored_yaw or self.held_yaw
+
+    @property
     def gate_choices(self) -> int:
         """Offsets a gate can pick per (slot, arm), besides none: the tokens, and with ``held_offsets``
         each (object k, held object j != k) pair as well (``tokens ** 2`` in all)."""

@@ -152,7 +152,7 @@ class PolicyJob(TrainingJob):
         self.model = AnchorDiffusionPolicy(self.cfg.model, mixed_precision=config.mixed_precision)
         self.model.set_normalizers(self.normalizer_stats())
         self.model.to(device)
-        if objects is not None and (objects.choice_offsets or objects.anchored_yaw or objects.held_yaw):
+        if objects is not None and objects.fits_choices:
             self.fit_choices()
         self.model.train()
         self.ema = ExponentialMovingAverage(self.model, self.cfg.ema)
