@@ -35,13 +35,17 @@ arrow, which a place that turns the object to a heading needs.
 Where the points carry roles (the segmenter's role head, or the simulator's labels: a point's
 object's place in the task's ``critical_objects()``), steps 1-4 give way to the roles: token j is
 role j + 1's points, in the same place in every frame and scene (k-means tokens of three alike
-blocks come out in another order each time, ladder rung D3).
+blocks come out in another order each time, ladder rung D3). Objects that look alike (three
+bottles) get their roles at random from a segmenter, so their pooled points are clustered again and
+ordered by their distance from another object (``split_alike``: from the dustbin).
 
 Everything is batched tensor arithmetic (no randomness, no Python loop over samples), so it runs
 inside the policy's forward pass, after augmentation, at training and at inference alike.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import torch
 
@@ -103,6 +107,28 @@ def cluster_critical_points(xyz: torch.Tensor, critical: torch.Tensor, k: int,
     order = torch.sort(-count, dim=1, stable=True).indices  # (B, k), largest first
     rank = torch.argsort(order, dim=1)  # old cluster id -> its rank
     return torch.gather(rank, 1, assign), torch.gather(centres, 1, order[..., None].expand(-1, -1, 3)) / stretch
+
+
+def split_alike(xyz: torch.Tensor, roles: torch.Tensor, alike: Sequence[int], by: int) -> torch.Tensor:
+    """``roles`` with the points of the ``alike`` roles (objects that look alike, whose points a
+    segmenter labels with any of their roles) pooled and split again by position: the pooled points'
+    ``len(alike)`` clusters (``cluster_critical_points``) take the roles of ``alike`` in order of their
+    centroid's distance in the table plane from the centroid of role ``by``'s points, nearest first
+    (largest first where role ``by`` has no points; an empty cluster last).
+
+    xyz: (B, N, 3) metres; roles: (B, N) integer, 0 none -> (B, N) long."""
+    roles = roles.long()
+    group = torch.tensor(list(alike), dtype=torch.long, device=roles.device)
+    pooled = torch.isin(roles, group)
+    k = len(group)
+    assign, centres = cluster_critical_points(xyz, pooled, k)
+    count = (torch.nn.functional.one_hot(assign, k) * pooled[..., None]).sum(1)  # (B, k)
+    ref = roles == by
+    centre = torch.einsum("bn,bnc->bc", ref.to(xyz.dtype), xyz) / ref.sum(1).clamp(min=1)[:, None].to(xyz.dtype)
+    dist = (centres[..., :2] - centre[:, None, :2]).norm(dim=-1) * ref.any(1)[:, None]  # 0s keep the size order
+    dist = torch.where(count > 0, dist, torch.full_like(dist, float("inf")))
+    rank = torch.argsort(torch.sort(dist, dim=1, stable=True).indices, dim=1)  # cluster -> its place in the order
+    return torch.where(pooled, group[torch.gather(rank, 1, assign)], roles)
 
 
 def object_tokens(points: torch.Tensor, state: torch.Tensor, layout: StateLayout, k: int,

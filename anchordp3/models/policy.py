@@ -29,10 +29,11 @@ from anchordp3.models.encoders import StateEncoder, TaskConditionedEncoder
 from anchordp3.models.kernels import fast_kernels
 from anchordp3.models.normalizer import MinMaxNormalizer
 from anchordp3.models.objects import (ObjectTokenEncoder, finger_yaw, held_tokens, nearest_branch, nearest_token_gates,
-                                      object_tokens, pair_offsets, token_features, token_gripper_offsets,
+                                      object_tokens, pair_offsets, split_alike, token_features, token_gripper_offsets,
                                       token_heading, token_yaw, top_down_rot6)
 from anchordp3.models.unet1d import ConditionalUnet1D
 from anchordp3.schemas.state import ARMS, StateLayout
+from anchordp3.schemas.tasks import task_id as registered_task_id
 from anchordp3.schemas.training import DiffusionSchedulerConfig, PolicyConfig
 
 
@@ -177,7 +178,7 @@ class AnchorDiffusionPolicy(nn.Module):
     def _tokens(self, obs: Mapping[str, torch.Tensor], points: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """The object head's tokens of ``obs`` (``models.objects.object_tokens`` with the head's settings)."""
         return object_tokens(points, state, self.layout, self.objects.tokens, orientation=self.objects.orientation,
-                             z_weight=self.objects.z_weight, roles=self._roles(obs), half_angle=self.objects.half_angle,
+                             z_weight=self.objects.z_weight, roles=self._roles(obs, points), half_angle=self.objects.half_angle,
                              heading=self.objects.heading)
 
     def gates(self, cond: torch.Tensor) -> torch.Tensor:
@@ -492,13 +493,23 @@ class AnchorDiffusionPolicy(nn.Module):
             raise ValueError(f"state: expected ({points.shape[0]}, {self.config.action_dim}), got {tuple(state.shape)}")
         return points, state, task_id
 
-    def _roles(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
-        """``obs["roles"] (B, N)`` (each point's role, 0 none) where the object head's tokens are roles, else None."""
+    def _roles(self, obs: Mapping[str, torch.Tensor], points: torch.Tensor) -> torch.Tensor | None:
+        """``obs["roles"] (B, N)`` (each point's role, 0 none) where the object head's tokens are roles,
+        the alike objects' split by position in the tasks that have them (``objects.alike``), else None.
+        points: (B, N, C) data units, xyz metres first."""
         if self.objects.source != "roles":
             return None
         if obs.get("roles") is None:
             raise KeyError("observation: missing 'roles' (each point's role), needed by policy.model.objects.source 'roles'")
-        return torch.as_tensor(obs["roles"], device=self.device)
+        roles = torch.as_tensor(obs["roles"], device=self.device)
+        if not self.objects.alike:
+            return roles
+        roles, task = roles.long().clone(), torch.as_tensor(obs["task_id"], device=self.device).reshape(-1)
+        for name, group in self.objects.alike.items():
+            rows = task == registered_task_id(name)
+            if rows.any():
+                roles[rows] = split_alike(points[rows, :, :3].float(), roles[rows], group.roles, group.by)
+        return roles
 
     def _check_anchors(self, anchors: torch.Tensor) -> None:
         want = (self.config.horizon, self.config.action_dim)

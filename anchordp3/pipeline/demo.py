@@ -3,8 +3,8 @@ two CPU cores: one run of the whole graph on ``configs/demo.yaml`` (the data sta
 anchors → render → features → write, a picture of one rendered frame once they are done, the
 three models trained with ``configs/demo_training.yaml``, closed-loop evaluation ending with the
 success table), and
-beside it the shipped models (``--models pretrained``, trained by ``configs/recipe.yaml``) on
-unseen seeds of their tasks, so a newcomer sees a policy do the tasks.
+beside it the shipped models (``--models pretrained``, made as their ``SHIPPED.md`` says) on
+unseen seeds of each of their tasks, so a newcomer sees a policy do the tasks.
 Re-running resumes wherever it stopped.
 """
 
@@ -24,6 +24,7 @@ from anchordp3.pipeline.evaluation import (
 from anchordp3.pipeline.evaluation import STAGE as EVAL_STAGE
 from anchordp3.pipeline.report import data_summary
 from anchordp3.pipeline.runner import RunOptions, run_pipeline
+from anchordp3.pipeline.shipping import SHIPPED_FILE
 from anchordp3.pipeline.show import show_frame
 from anchordp3.pipeline.store import read_manifest
 from anchordp3.pipeline.targets import Trained, run_evaluation, training_summary
@@ -44,14 +45,15 @@ class DemoOptions:
     """episodes: evaluation episodes per task; max_decisions: cap on policy calls per evaluation
     episode of the demo's own policy (keeps the demo's length bounded: minutes of training do not
     do the tasks, and a failing episode runs to the cap); pretrained_max_decisions: the same for
-    the shipped models (they take 12-15 decisions per episode); train/evaluate: stop earlier when False;
+    the shipped models (a single-arm task takes 9-12 decisions, the block tasks 30-50, the
+    bottles about 55); train/evaluate: stop earlier when False;
     training: the training settings (None: the embedded ``configs/demo_training.yaml``);
     pretrained_episodes: unseen seeds per task on which the shipped models are evaluated after the
     demo's own (0: skip)."""
 
     episodes: int = 1
     max_decisions: int | None = 8
-    pretrained_max_decisions: int | None = 40
+    pretrained_max_decisions: int | None = 60
     workers: int = 2
     train: bool = True
     evaluate: bool = True
@@ -110,7 +112,7 @@ def run_demo(run_dir: Path, cfg: RunConfig, opts: DemoOptions = DemoOptions()) -
     report = folder / "report.md"
     log.info(f"\nReport: {report} | chart: {folder / 'success.png'} | training curves: {run_dir / 'models'}/*/loss.png")
     if opts.pretrained_episodes and shipped_models_present():
-        log.info("\n== and the shipped policy (`--models pretrained`, made by configs/recipe.yaml) on the same kind of unseen seeds")
+        log.info(f"\n== and the shipped policy (`--models pretrained`, {PRETRAINED_DIR / SHIPPED_FILE}) on the same kind of unseen seeds")
         shipped = EvalOptions(models=PRETRAINED, episodes=opts.pretrained_episodes, workers=opts.workers, address=opts.address,
                               max_decisions=opts.pretrained_max_decisions, out=run_dir / PRETRAINED_EVAL_DIR, force=True)
         log.info("\n" + evaluation_summary(run_evaluation(None, shipped)))

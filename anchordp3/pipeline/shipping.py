@@ -21,6 +21,7 @@ import torch
 from anchordp3.pipeline.evaluation import PRETRAINED_DIR, RUN_CONFIG_FILE
 from anchordp3.pipeline.store import MANIFEST, read_manifest
 from anchordp3.pipeline.training import TRAINING_FILE, model_dir, trained_model
+from anchordp3.schemas.run import load_run_config
 from anchordp3.schemas.training import MODELS, DiffusionSchedulerConfig
 from anchordp3.stages.files import atomic_write_bytes
 from anchordp3.stages.training_loop import load_checkpoint
@@ -99,7 +100,9 @@ def ship_models(run_dir: Path, dest: Path | None = None, command: str = "", ddim
     sampling = DiffusionSchedulerConfig.model_validate(configs["policy"]["scheduler"])  # defaults for older checkpoints
     steps = sampling.num_inference_steps
     origin = f"From the {'models folder' if shipped else 'run'} `{run_dir.name}`"
+    tasks = load_run_config(run_config).tasks
     lines = ["# Shipped models", "", origin + (f", made by `{command}`." if command else "."), "",
+             f"Tasks ({len(tasks)}): {', '.join(tasks)}.", "",
              "| model | model.pt MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.2f} |" for k, v in sizes.items()] + \
             ["", f"In all {total / 1e6:.2f} MB. `run_config.yaml` is the data config they were trained on. "
              f"The policy decides with {steps} DDIM steps.", ""]

@@ -251,6 +251,27 @@ class EMAConfig(_Config):
     max_value: float = Field(default=0.9999, ge=0, le=1, description="Upper bound of the decay.")
 
 
+class AlikeObjects(_Config):
+    """Objects of one task that look alike (the three bottles), so a segmenter labels their points
+    with any of their roles: their tokens are made by position instead (``models.objects.split_alike``)."""
+
+    roles: tuple[int, ...] = Field(
+        min_length=2,
+        description="Their roles, 1-based in the task's order of critical objects: the points of these roles are pooled "
+                    "and clustered into as many objects.")
+    by: int = Field(
+        ge=1,
+        description="The role of the object that orders them: the cluster nearest it in the table plane takes the "
+                    "first of 'roles', the next nearest the second, ... (the dustbin: the bottles in it, then the "
+                    "one beside it, then the far ones).")
+
+    @model_validator(mode="after")
+    def _distinct(self) -> AlikeObjects:
+        if len(set(self.roles)) != len(self.roles) or self.by in self.roles or min(self.roles) < 1:
+            raise ValueError(f"roles: {list(self.roles)} must be distinct roles from 1 on, 'by' ({self.by}) not among them")
+        return self
+
+
 class ObjectHeadConfig(_Config):
     """The object head (``models.objects``): the points the critical channel marks, clustered into
     ``tokens`` objects, each summarised beside the point encoder, and optionally the anchors
@@ -339,6 +360,12 @@ class ObjectHeadConfig(_Config):
                     "a tenth of the frames), a place taken while the arm holds that object gets the rotation that "
                     "turns it there: the finger yaw now, less the object's heading, plus the fitted heading (the "
                     "shoes' toes, ladder rung D11).")
+    alike: dict[str, AlikeObjects] = Field(
+        default_factory=dict,
+        description="Per task, objects that look alike and the object that orders them (source 'roles'): "
+                    "{put_bottles_dustbin: {roles: [1, 2, 3], by: 4}}. A segmenter cannot tell three alike bottles "
+                    "apart, so their role tokens mix two bottles' points (a grasp between them, ladder rung D13); "
+                    "their points are split by position instead, in a fixed order.")
     gate_radius: float = Field(
         default=0.15, gt=0,
         description="Metres: an anchor further than this from every token's centroid belongs to no object (its gates' "
@@ -365,6 +392,13 @@ class ObjectHeadConfig(_Config):
                              "(offsets relative to the held object, and its heading)")
         if self.stay_radius and not self.anchored_offsets:
             raise ValueError("stay_radius: needs anchored_offsets")
+        if self.alike and self.source != "roles":
+            raise ValueError("alike: needs source 'roles' (it splits the points of roles)")
+        for task, group in self.alike.items():
+            if task not in TASK_NAMES:
+                raise ValueError(f"alike: unknown task {task!r} (known: {', '.join(TASK_NAMES)})")
+            if max(*group.roles, group.by) > self.tokens:
+                raise ValueError(f"alike.{task}: roles up to {self.tokens} (tokens), got {[*group.roles, group.by]}")
         if self.source == "roles" and self.z_weight != 1.0:
             raise ValueError(f"z_weight: {self.z_weight} weighs heights in the clustering (the recipe preset's), but tokens of "
                              "source 'roles' are not clustered; set z_weight: 1")

@@ -8,10 +8,11 @@ import torch
 from pydantic import ValidationError
 
 from anchordp3.models.encoders import append_critical_probability
-from anchordp3.models.objects import POSITION_SCALE, object_tokens
+from anchordp3.models.objects import POSITION_SCALE, object_tokens, split_alike
 from anchordp3.models.policy import AnchorDiffusionPolicy
 from anchordp3.models.segmenter import PointNet2Segmenter, SegmentationCounts, segmentation_loss
 from anchordp3.schemas.state import StateLayout
+from anchordp3.schemas.tasks import task_id
 from anchordp3.schemas.training import ObjectHeadConfig, PolicyConfig, SegmenterConfig
 from tests.models.test_object_tokens import head
 from tests.models.test_policy_model import TINY, samples, stats_of
@@ -120,3 +121,59 @@ def test_a_policy_of_role_tokens_over_a_segmenter_without_enough_roles_is_refuse
         TrainingConfig.model_validate({"segmenter": {"model": {"roles": 2}}, "policy": policy})
     assert TrainingConfig.model_validate({"segmenter": {"model": {"roles": 4}}, "policy": policy})
     assert TrainingConfig.model_validate({"policy": {**policy, "label_channel": "ground_truth"}})  # the labels' roles
+
+
+def bottles(seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Three alike bottles (7 cm wide, 60 points each) at random, well apart places and a dustbin
+    (role 4) at (-0.2, 0.12): xyz (1, N, 3) metres, roles (1, N) as a segmenter gives them (each
+    bottle point one of roles 1-3 at random: it cannot tell alike bottles apart) and each point's
+    bottle (0-2, -1 not a bottle)."""
+    g = torch.Generator().manual_seed(seed)
+    parts, roles, which = [], [], []
+    while True:
+        centres = torch.rand(3, 2, generator=g) * torch.tensor([0.5, 0.3]) - torch.tensor([0.15, 0.15])
+        if torch.pdist(centres).min() > 0.12:
+            break
+    for i, c in enumerate(centres):
+        parts.append(torch.rand(60, 3, generator=g) * torch.tensor([0.07, 0.07, 0.15]) + torch.tensor([*(c - 0.035), 0.74]))
+        roles.append(torch.randint(1, 4, (60,), generator=g))
+        which.append(torch.full((60,), i))
+    parts.append(torch.rand(80, 3, generator=g) * 0.1 + torch.tensor([-0.25, 0.07, 0.74]))
+    roles.append(torch.full((80,), 4))
+    which.append(torch.full((80,), -1))
+    parts.append(torch.rand(100, 3, generator=g) * torch.tensor([0.8, 0.6, 0.0]) - torch.tensor([0.4, 0.3, -0.74]))
+    roles.append(torch.zeros(100, dtype=torch.long))
+    which.append(torch.full((100,), -1))
+    return torch.cat(parts)[None], torch.cat(roles)[None], torch.cat(which)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_alike_objects_take_their_roles_by_distance_from_the_object_that_orders_them(seed) -> None:
+    xyz, roles, which = bottles(seed)
+    split = split_alike(xyz, roles, (1, 2, 3), by=4)
+    bin_xy = xyz[0, roles[0] == 4, :2].mean(0)
+    order = torch.argsort(torch.stack([(xyz[0, which == i, :2].mean(0) - bin_xy).norm() for i in range(3)]))
+    for role, bottle in enumerate(order.tolist(), start=1):  # the bottle nearest the bin is role 1, ...
+        assert (split[0, which == bottle] == role).all()
+    assert torch.equal(split[0, which < 0], roles[0, which < 0])  # the bin and the table keep theirs
+    perm = torch.randperm(xyz.shape[1], generator=torch.Generator().manual_seed(seed))
+    assert torch.equal(split_alike(xyz[:, perm], roles[:, perm], (1, 2, 3), by=4), split[:, perm])
+
+
+def test_a_policy_splits_alike_objects_only_in_their_task() -> None:
+    config = head(TINY, tokens=4, source="roles", alike={"put_bottles_dustbin": {"roles": [1, 2, 3], "by": 4}})
+    torch.manual_seed(0)
+    policy = AnchorDiffusionPolicy(config)
+    xyz, roles, which = bottles(0)
+    points = torch.cat([xyz, torch.zeros(1, xyz.shape[1], 8)], dim=-1).expand(2, -1, -1)
+    obs = {"points": points, "roles": roles.expand(2, -1), "task_id": torch.tensor([task_id("put_bottles_dustbin"), task_id("place_mouse")])}
+    got = policy._roles(obs, points)
+    assert torch.equal(got[0], split_alike(xyz, roles, (1, 2, 3), by=4)[0])  # the bottles: by position
+    assert torch.equal(got[1], roles[0])  # another task's roles as the segmenter gave them
+    for bad, field in [({"place_nothing": {"roles": [1, 2], "by": 3}}, "unknown task"),
+                       ({"put_bottles_dustbin": {"roles": [1, 2, 3], "by": 5}}, "roles up to 4"),
+                       ({"put_bottles_dustbin": {"roles": [1, 2], "by": 2}}, "'by' \\(2\\) not among them")]:
+        with pytest.raises(ValidationError, match=field):
+            ObjectHeadConfig(tokens=4, source="roles", alike=bad)
+    with pytest.raises(ValidationError, match="alike: needs source 'roles'"):
+        ObjectHeadConfig(tokens=4, alike={"put_bottles_dustbin": {"roles": [1, 2, 3], "by": 4}})

@@ -17,7 +17,7 @@ from anchordp3.pipeline.runner import LOG_FILE, RunOptions, run_pipeline
 from anchordp3.pipeline.store import has_manifest, read_manifest
 from anchordp3.pipeline.targets import run_evaluation, train_models
 from anchordp3.schemas.evaluation import EvalOptions
-from anchordp3.schemas.run import RunConfig
+from anchordp3.schemas.run import RunConfig, load_run_config
 from anchordp3.schemas.training import MODELS, TrainingConfig
 from tiny_models import tiny_data, tiny_training
 
@@ -225,6 +225,8 @@ def test_shipped_models_are_small_and_decide_as_the_run_s_own(trained_run, tmp_p
         assert (dest / name / "model.pt").stat().st_size <= (trained_run / "models" / name / "model.pt").stat().st_size
         assert (dest / name / "manifest.json").is_file()
     assert (dest / "run_config.yaml").is_file() and "recipe tiny" in (dest / SHIPPED_FILE).read_text()
+    tasks = load_run_config(trained_run / "config.yaml").tasks
+    assert f"Tasks ({len(tasks)}): {', '.join(tasks)}." in (dest / SHIPPED_FILE).read_text()  # what the folder does
     from anchordp3.stages.evaluate import EvalModels
 
     own, shipped = EvalModels(trained_run / "models"), EvalModels(dest)
