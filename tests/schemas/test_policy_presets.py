@@ -1,6 +1,7 @@
 """The policy's two named presets and its object head as one optional section: ``report`` is the
-report's model, ``recipe`` is what ships (the shipped checkpoint's settings, field for field), a
-field beside a preset overrides it, and configs and checkpoints of the earlier flat form read the same."""
+report's model, ``recipe`` with the eight-task recipe's object head is what ships (the shipped
+checkpoint's settings, field for field), a field beside a preset overrides it, and configs and
+checkpoints of the earlier flat form read the same."""
 
 from __future__ import annotations
 
@@ -22,12 +23,12 @@ def test_the_report_preset_is_the_point_encoder_alone_on_absolute_anchors():
     assert report.cond_dim == report.point_encoder.out_dim + report.state_encoder.hidden_dim
 
 
-def test_the_recipe_preset_is_the_shipped_policy_s_settings():
+def test_the_shipped_policy_is_what_the_eight_task_recipe_trains():
     shipped = torch.load(ROOT / "anchordp3" / "pretrained" / "policy" / "model.pt", weights_only=False)["config"]
-    assert not {"objects", "preset"} & set(shipped)  # the shipped checkpoint has the earlier, flat form
     read = PolicyConfig.model_validate(shipped)
-    recipe = PolicyConfig.model_validate({"preset": "recipe", "scheduler": {"num_inference_steps": read.scheduler.num_inference_steps}})
-    assert recipe.model_copy(update={"preset": None}) == read
+    recipe = load_recipe_config(ROOT / "configs" / "recipe_eight.yaml").training.policy.model
+    assert recipe.preset == "recipe" and recipe.objects.source == "roles"
+    assert recipe.model_copy(update={"scheduler": read.scheduler}) == read  # shipped with its own DDIM steps
     assert load_recipe_config(ROOT / "configs" / "recipe.yaml").training.policy.model.preset == "recipe"
 
 
