@@ -8,7 +8,13 @@ counts by its syntax tree with docstrings left out, so editing a comment, a docs
 layout changes nothing, while any change to what the code does changes the hash and so marks
 the stage's outputs as made by other code.
 
-    code_hash(("anchordp3.stages.render",))  # 64 hex digits
+A task's own module (the one of ``sim/tasks/`` that declares its class) counts apart: ``code_hash``
+leaves the task modules out when only the task registry brings them in, and ``task_hashes`` gives
+each task the hash of its module, so changing one task's expert marks only that task's outputs as
+made by other code (``schemas.manifest.Fingerprint.tasks``).
+
+    code_hash(("anchordp3.stages.render",), exclude=task_modules().values())  # 64 hex digits
+    task_hashes(("anchordp3.stages.render",), ["place_mouse"])  # {"place_mouse": 16 hex digits}
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from pathlib import Path
 import anchordp3
 
 PACKAGE = "anchordp3"
+TASKS_PACKAGE = "anchordp3.sim.tasks"  # the registry of task classes, one module per task or family
 ROOT = Path(anchordp3.__file__).resolve().parent  # the package folder whose sources are hashed
 
 
@@ -103,14 +110,90 @@ def module_closure(entries: Iterable[str], root: Path | None = None) -> list[str
     return sorted(seen)
 
 
-def code_hash(entries: Iterable[str], root: Path | None = None) -> str:
+def code_hash(entries: Iterable[str], root: Path | None = None, exclude: Iterable[str] = ()) -> str:
     """sha256 (hex) over the docstring-free syntax trees of ``entries`` and all they import
-    (root: the package folder, default ``ROOT``)."""
+    (root: the package folder, default ``ROOT``), but for the task modules in ``exclude`` that only
+    the task registry imports (those ``task_hashes`` covers; a module another one imports stays)."""
     root = Path(root or ROOT)
+    closure = module_closure(entries, root)
+    apart = set(exclude) - imported_elsewhere(closure, set(exclude), root)
     h = hashlib.sha256()
-    for name in module_closure(entries, root):
-        h.update(f"{name}\0{_digest(module_path(name, root))}\n".encode())
+    for name in closure:
+        if name not in apart:
+            h.update(f"{name}\0{_digest(module_path(name, root))}\n".encode())
     return h.hexdigest()
+
+
+def imported_elsewhere(closure: Iterable[str], modules: set[str], root: Path) -> set[str]:
+    """Those of ``modules`` that a module of ``closure`` imports by name, other than the task
+    registry and ``modules`` themselves."""
+    found: set[str] = set()
+    for name in closure:
+        if name != TASKS_PACKAGE and name not in modules:
+            found |= imported_modules(name, _parse(module_path(name, root)), root) & modules
+    return found
+
+
+def task_modules(root: Path | None = None) -> dict[str, str]:
+    """Each task's name -> the module of ``sim/tasks/`` whose class declares its spec
+    (``spec = PLACE_MOUSE``), read from the sources: the simulator is not imported. Empty when the
+    package has no task registry."""
+    from anchordp3.schemas import tasks as specs
+
+    root = Path(root or ROOT)
+    init = module_path(TASKS_PACKAGE, root)
+    if init is None or init.name != "__init__.py":
+        return {}
+    out: dict[str, str] = {}
+    for path in sorted(init.parent.glob("*.py")):
+        if path.stem == "__init__":
+            continue
+        for node in ast.walk(_parse(path)):
+            if isinstance(node, ast.ClassDef):
+                for name in _spec_names(node):
+                    spec = getattr(specs, name, None)
+                    if isinstance(spec, specs.TaskSpec):
+                        out[spec.name] = f"{TASKS_PACKAGE}.{path.stem}"
+    return out
+
+
+def _spec_names(cls: ast.ClassDef) -> list[str]:
+    """The names a class body assigns to ``spec`` (``spec = PLACE_MOUSE`` -> ``["PLACE_MOUSE"]``)."""
+    return [stmt.value.id for stmt in cls.body
+            if isinstance(stmt, ast.Assign) and isinstance(stmt.value, ast.Name)
+            and any(isinstance(t, ast.Name) and t.id == "spec" for t in stmt.targets)]
+
+
+def task_hashes(entries: Iterable[str], tasks: Iterable[str], root: Path | None = None) -> dict[str, str]:
+    """For each of ``tasks`` whose module the code of ``entries`` reaches: the first 16 hex digits of
+    a sha256 over that module's syntax tree and those of the task modules it imports. Tasks the code
+    does not reach (a stage that never builds a scene) are left out."""
+    root = Path(root or ROOT)
+    modules = task_modules(root)
+    closure = set(module_closure(entries, root))
+    family = set(modules.values())
+    out: dict[str, str] = {}
+    for task in tasks:
+        module = modules.get(task)
+        if module is None or module not in closure:
+            continue
+        h = hashlib.sha256()
+        for name in _family_closure(module, family, root):
+            h.update(f"{name}\0{_digest(module_path(name, root))}\n".encode())
+        out[task] = h.hexdigest()[:16]
+    return out
+
+
+def _family_closure(module: str, family: set[str], root: Path) -> list[str]:
+    """``module`` and the task modules of ``family`` it imports, directly or through one another
+    (not through the registry, which imports them all), sorted."""
+    todo, seen = [module], set()
+    while todo:
+        name = todo.pop()
+        if name not in seen:
+            seen.add(name)
+            todo.extend(imported_modules(name, _parse(module_path(name, root)), root) & family)
+    return sorted(seen)
 
 
 def _parse(path: Path) -> ast.Module:

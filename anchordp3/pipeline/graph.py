@@ -16,13 +16,14 @@ function and payload beside it).
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import anchordp3
-from anchordp3.pipeline.codehash import code_hash
+from anchordp3.pipeline.codehash import code_hash, task_hashes, task_modules
 from anchordp3.schemas.manifest import Fingerprint, P
 from anchordp3.schemas.records import Payload
 from anchordp3.schemas.run import PoolConfig, RunConfig, config_hash
@@ -257,11 +258,20 @@ def fingerprints(cfg: RunConfig, graph: Graph) -> dict[str, Fingerprint]:
     """Each data stage's fingerprint: code version and hash, its config part, its upstream's digest
     (a batch stage's depends on files: ``Stage.fingerprint``)."""
     out: dict[str, Fingerprint] = {}
+    apart = task_modules().values()  # each task's own module counts in its tasks' hashes only
     for st in graph.data_stages:
         up = graph.upstream(st.name)
-        out[st.name] = Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([st.code]),
-                                   config_hash=config_hash(st.config(cfg)), upstream={up: out[up].digest()} if up else {})
+        own, before = task_hashes([st.code], cfg.tasks), out[up].tasks if up else {}
+        tasks = {t: chain_hash(own.get(t, ""), before.get(t, "")) for t in cfg.tasks if t in own or t in before}
+        out[st.name] = Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([st.code], exclude=apart),
+                                   config_hash=config_hash(st.config(cfg)), upstream={up: out[up].digest()} if up else {},
+                                   tasks=tasks)
     return out
+
+
+def chain_hash(own: str, upstream: str) -> str:
+    """One task's hash at a stage: its module's hash as the stage's code reaches it, after its upstream's."""
+    return hashlib.sha256(f"{own}\0{upstream}".encode()).hexdigest()[:16]
 
 
 def translate_layout(cfg: RunConfig, graph: Graph, stored: dict[str, Fingerprint]) -> dict[str, Fingerprint]:

@@ -115,7 +115,7 @@ def run_status(run_dir: Path) -> list[StageStatus]:
         out.append(StageStatus(stage=s, folder=STAGE_DIRS[s], ran=True, done=c.done, failed=c.failed, planned=c.planned,
                                complete=m.complete, seconds=c.seconds, fingerprint=digest,
                                stale=None if want is None and gone is None else
-                               gone is not None or digest != want[s].digest(),
+                               bool(changed),  # a task's change too: its items will be made again
                                changed=changed))
     return out
 

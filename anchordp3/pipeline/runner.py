@@ -54,7 +54,7 @@ from anchordp3.pipeline.products import GRAPH
 from anchordp3.pipeline.reaper import watch_local_ray
 from anchordp3.pipeline.store import ManifestStore, StaleStageError, read_summary
 from anchordp3.schemas.episode import episode_id
-from anchordp3.schemas.manifest import Fingerprint, ItemRecord
+from anchordp3.schemas.manifest import Fingerprint, ItemRecord, task_change
 from anchordp3.schemas.run import RunConfig
 from anchordp3.stages.files import atomic_write_bytes, no_space, sweep_interrupted_writes
 
@@ -228,7 +228,8 @@ class Runner:
     def open_stores(self) -> dict[str, ManifestStore]:
         written = read_fingerprints(self.run_dir, self.graph)
         stored = translate_layout(self.cfg, self.graph, written)
-        changes = {s: c for s in self.names if s in stored and (c := stored[s].changes(self.fps[s]))}
+        every = {s: c for s in self.names if s in stored and (c := stored[s].changes(self.fps[s]))}
+        changes = {s: w for s, c in every.items() if (w := [x for x in c if task_change(x) is None])}
         redo: set[str] = set()
         if self.opts.from_stage in self.names:
             redo |= set(self.names[self.names.index(self.opts.from_stage):])
@@ -244,16 +245,32 @@ class Runner:
                 f"{self.run_dir}: stage(s) {describe_changes(left)} were made with another "
                 f"{'code' if code_only else 'config or code'} than now; refusing to mix old and new outputs: rerun with {hint}")
         restamp = {s for s in stored if s not in changes and written[s] != stored[s]}  # made under a former layout
+        retask = {} if self.opts.keep_outputs else {  # only some tasks' code changed: redo their items alone
+            s: [t for x in c if (t := task_change(x))] for s, c in every.items() if s not in changes and s not in redo}
         for s in self.names:
             if s in keep:
-                log.info(f"{s}: keeping the outputs other code made ({', '.join(changes[s])}), as --keep-outputs asks")
+                log.info(f"{s}: keeping the outputs other code made ({', '.join(every[s])}), as --keep-outputs asks")
             if s in restamp:
                 log.info(f"{s}: outputs fingerprinted under an earlier config layout; re-stamped, nothing redone")
-        stores = {s: ManifestStore(self._dir(s), s, self.fps[s], reset=s in redo, adopt=s not in redo and s in keep | restamp,
-                                 payload=self.graph[s].stop_payload) for s in self.names}
+            if s in retask:
+                log.info(f"{s}: the code of {', '.join(retask[s])} changed: their items are made again, the other tasks' kept")
+        stores = {s: ManifestStore(self._dir(s), s, self.fps[s], reset=s in redo,
+                                   adopt=s not in redo and s in keep | restamp | set(retask) | (set(every) if self.opts.keep_outputs else set()),
+                                   payload=self.graph[s].stop_payload, forget=self._items_of(s, retask.get(s, ())))
+                  for s in self.names}
         for st in self.chain:
             self.halted[st.name] = stores[st.name].stopped()
         return stores
+
+    def _items_of(self, stage: str, tasks: Sequence[str]) -> list[str]:
+        """The item ids of ``stage`` that hold an episode of ``tasks``: the episodes themselves, or
+        for the group stage the groups with such a member and its finishing item."""
+        if not tasks:
+            return []
+        if self.group is not None and stage == self.group.name:
+            groups = [_group_id(k) for k, members in enumerate(self.plan) if any(m.task in tasks for m in members)]
+            return groups + ([self.group.finish_item] if groups and self.group.finish is not None else [])
+        return [episode_id(t, s) for t, s in self.episodes if t in tasks]
 
     def check_inputs(self, stores: dict[str, ManifestStore]) -> None:
         """A stage run without its upstream must find the upstream complete."""

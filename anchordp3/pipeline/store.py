@@ -257,10 +257,12 @@ class ManifestStore:
     fingerprint: what the outputs about to be written depend on. Opening a stage whose stored
     fingerprint differs raises ``StaleStageError`` unless ``reset`` (then its folder is emptied) or
     ``adopt`` (the records are kept and the manifest takes ``fingerprint``, durably, at once).
-    payload: the stage's payload model, when its items can stop an episode (fills ``stops``)."""
+    payload: the stage's payload model, when its items can stop an episode (fills ``stops``).
+    forget: items whose records go in the same transaction that writes ``fingerprint`` (they
+    will be redone: a task whose code changed)."""
 
     def __init__(self, stage_dir: Path, stage: str, fingerprint: Fingerprint, reset: bool = False, adopt: bool = False,
-                 payload: type[Payload] | None = None):
+                 payload: type[Payload] | None = None, forget: Iterable[str] = ()):
         self.dir, self.stage, self.fingerprint, self.payload = Path(stage_dir), stage, fingerprint, payload
         existing = read_summary(self.dir) if self.dir.exists() else None
         if existing is not None and existing.fingerprint != fingerprint and not (reset or adopt):
@@ -284,7 +286,8 @@ class ManifestStore:
         if existing is not None:
             self.counts, self.complete = existing.counts.model_copy(), existing.complete
         self._pending: dict[str, ItemRecord] = {}
-        with _transaction(self.db):  # the fingerprint is on disk before any output of this writer is
+        with _transaction(self.db):  # the fingerprint is on disk before any output of this writer is, and
+            self._drop(forget)        # in the same step the records it no longer covers are gone
             self._put_meta(self._meta())
 
     # ------------------------------------------------------------------------------ reading
@@ -352,13 +355,9 @@ class ManifestStore:
     def forget(self, items: list[str]) -> None:
         """Drop the records of ``items`` (they will be redone), durably; the stage is no longer complete."""
         self.flush()
-        for item in items:
-            if item in self.status:
-                self._count(self.get(item), -1)
-                del self.status[item]
         self.complete = False
         with _transaction(self.db):
-            self.db.executemany("DELETE FROM items WHERE item = ?", [(i,) for i in items])
+            self._drop(items)
             self._put_meta(self._meta())
 
     def finish(self, planned: int, complete: bool) -> StageManifest:
@@ -379,6 +378,17 @@ class ManifestStore:
                 self.db = None
 
     # ------------------------------------------------------------------------------ helpers
+    def _drop(self, items: Iterable[str]) -> None:
+        """Delete the records of ``items`` and their counts (inside the caller's transaction); a
+        stage that loses any is no longer complete."""
+        gone = [i for i in items if i in self.status]
+        for item in gone:
+            self._count(self.get(item), -1)
+            del self.status[item]
+        if gone:
+            self.complete = False
+            self.db.executemany("DELETE FROM items WHERE item = ?", [(i,) for i in gone])
+
     def _count(self, rec: ItemRecord | None, sign: int) -> None:
         if rec is None:
             return

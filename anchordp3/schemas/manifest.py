@@ -16,7 +16,8 @@ ItemStatus = Literal["done", "failed"]
 
 
 class Fingerprint(BaseModel):
-    """What a stage's outputs depend on; a change invalidates the stage and everything downstream."""
+    """What a stage's outputs depend on: a change of code, config or upstream invalidates the stage
+    and everything downstream; a change of one task's hash only that task's items there and downstream."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -25,23 +26,35 @@ class Fingerprint(BaseModel):
                                                   "(pipeline.codehash; empty: made before code was fingerprinted).")
     config_hash: str = Field(description="sha256 of the stage's part of the run config.")
     upstream: dict[str, str] = Field(default_factory=dict, description="Upstream stage name → its fingerprint digest.")
+    tasks: dict[str, str] = Field(default_factory=dict, description="Task name → hash of its own module (the task's "
+                                                                    "scene and expert) and of its upstream's, for the "
+                                                                    "tasks whose code the stage or its upstream runs; "
+                                                                    "code_hash leaves those modules out.")
 
     def changes(self, new: Fingerprint) -> list[str]:
-        """What differs from ``new``: ``code``, ``config`` and ``upstream <name>`` per upstream, in that
-        order; empty when the two are equal."""
+        """What differs from ``new``: ``code``, ``config``, ``upstream <name>`` per upstream and ``task
+        <name>`` per task, in that order; empty when the two are equal. A ``task`` change concerns
+        only that task's outputs."""
         out = []
         if (self.code_version, self.code_hash) != (new.code_version, new.code_hash):
             out.append("code")
         if self.config_hash != new.config_hash:
             out.append("config")
         out += [f"upstream {k}" for k in sorted(set(self.upstream) | set(new.upstream)) if self.upstream.get(k) != new.upstream.get(k)]
+        out += [f"task {k}" for k in sorted(set(self.tasks) | set(new.tasks)) if self.tasks.get(k) != new.tasks.get(k)]
         return out
 
     def digest(self) -> str:
-        """A short hash of this fingerprint (what downstream stages record)."""
+        """A short hash of this fingerprint but its tasks' hashes (what downstream stages record:
+        they carry the tasks' hashes on in their own ``tasks``)."""
         from anchordp3.schemas.run import config_hash
 
-        return config_hash(self.model_dump(mode="json"))[:16]
+        return config_hash(self.model_dump(mode="json", exclude={"tasks"}))[:16]
+
+
+def task_change(change: str) -> str | None:
+    """The task a ``Fingerprint.changes`` entry concerns (``task place_mouse`` -> ``place_mouse``), else None."""
+    return change.split(" ", 1)[1] if change.startswith("task ") else None
 
 
 class ItemRecord(BaseModel):

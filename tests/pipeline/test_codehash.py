@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from anchordp3.pipeline.codehash import ROOT, code_hash, module_closure
+from anchordp3.pipeline.codehash import ROOT, code_hash, module_closure, task_hashes, task_modules
+from anchordp3.schemas.tasks import TASK_NAMES
 
 
 def package(tmp_path: Path) -> Path:
@@ -75,7 +76,62 @@ def test_fingerprints_say_what_changed_and_keep_outputs_adopts_only_code_changes
     assert old.changes(old) == []
     assert old.changes(old.model_copy(update={"code_hash": "b"})) == ["code"]
     assert old.changes(old.model_copy(update={"config_hash": "d", "upstream": {"rollout": "y"}})) == ["config", "upstream rollout"]
+    tasked = old.model_copy(update={"tasks": {"place_mouse": "m", "place_bell": "b"}})
+    assert tasked.changes(tasked.model_copy(update={"tasks": {"place_mouse": "m", "place_bell": "c"}})) == ["task place_bell"]
+    assert tasked.digest() == old.digest()  # downstream stages carry the tasks' hashes on themselves
     changes = {"rollout": ["code"], "anchors": ["upstream rollout"], "render": ["config", "upstream anchors"],
                "features": ["upstream render"]}
     assert adoptable(changes) == ["rollout", "anchors"]  # a config change is never kept, nor what follows it
     assert describe_changes({"features": ["code"], "write": ["upstream features"]}) == "features (code), write (upstream features)"
+
+
+def with_tasks(root: Path) -> Path:
+    """``package`` plus a task registry like ``sim/tasks``: one module declares place_mouse and
+    place_bell, another place_phone_stand, a helper both import; stage ``s`` reaches them through
+    the registry only."""
+    tasks = root / "sim" / "tasks"
+    tasks.mkdir(parents=True)
+    (root / "sim" / "__init__.py").write_text("")
+    (tasks / "__init__.py").write_text(
+        "import importlib\nimport pkgutil\n\nfor m in pkgutil.iter_modules(__path__):\n"
+        "    importlib.import_module(f'{__name__}.{m.name}')\n")
+    (tasks / "helper.py").write_text("WIDTH = 1\n")
+    (tasks / "scale.py").write_text("from anchordp3.sim.tasks.helper import WIDTH\n\n\nclass Mouse:\n    spec = PLACE_MOUSE\n\n\n"
+                                    "class Bell:\n    spec = PLACE_BELL\n    size = WIDTH\n")
+    (tasks / "phone.py").write_text("from anchordp3.sim.tasks import helper\n\n\nclass Phone:\n    spec = PLACE_PHONE_STAND\n")
+    (root / "s.py").write_text("from anchordp3.sim import tasks\n")
+    return root
+
+
+def test_each_task_is_found_in_the_module_that_declares_its_spec(tmp_path) -> None:
+    root = with_tasks(package(tmp_path))
+    assert task_modules(root) == {"place_mouse": "anchordp3.sim.tasks.scale", "place_bell": "anchordp3.sim.tasks.scale",
+                                  "place_phone_stand": "anchordp3.sim.tasks.phone"}
+    assert task_modules(package(tmp_path / "other")) == {}  # no registry, no tasks
+    assert set(task_modules()) == set(TASK_NAMES)  # the package's own: every registered task
+
+
+def test_a_task_module_s_change_moves_that_task_s_hash_and_not_the_stage_s(tmp_path) -> None:
+    root = with_tasks(package(tmp_path))
+    tasks = ["place_mouse", "place_bell", "place_phone_stand"]
+    apart = task_modules(root).values()
+    code, before = code_hash(["anchordp3.s"], root, exclude=apart), task_hashes(["anchordp3.s"], tasks, root)
+    assert before["place_mouse"] == before["place_bell"] != before["place_phone_stand"]  # one module, one hash
+    assert task_hashes(["anchordp3.a"], tasks, root) == {}  # code that never reaches a task
+    (root / "sim" / "tasks" / "phone.py").write_text("from anchordp3.sim.tasks import helper\n\n\nclass Phone:\n"
+                                                     "    spec = PLACE_PHONE_STAND\n    lean = 2\n")
+    after = task_hashes(["anchordp3.s"], tasks, root)
+    assert code_hash(["anchordp3.s"], root, exclude=apart) == code
+    assert after["place_phone_stand"] != before["place_phone_stand"] and after["place_mouse"] == before["place_mouse"]
+    assert code_hash(["anchordp3.s"], root) != code_hash(["anchordp3.s"], root, exclude=apart)  # excluded they were
+    (root / "sim" / "tasks" / "helper.py").write_text("WIDTH = 2\n")  # shared by all tasks: the stage's own code
+    assert code_hash(["anchordp3.s"], root, exclude=apart) != code
+
+
+def test_a_task_module_another_module_imports_stays_in_the_stage_s_code(tmp_path) -> None:
+    root = with_tasks(package(tmp_path))
+    (root / "t.py").write_text("from anchordp3.sim import tasks\nfrom anchordp3.sim.tasks import phone\n")
+    apart = task_modules(root).values()
+    before = code_hash(["anchordp3.t"], root, exclude=apart)
+    (root / "sim" / "tasks" / "phone.py").write_text("class Phone:\n    spec = PLACE_PHONE_STAND\n    lean = 3\n")
+    assert code_hash(["anchordp3.t"], root, exclude=apart) != before

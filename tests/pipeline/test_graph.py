@@ -213,3 +213,55 @@ def test_a_run_config_s_sections_choose_what_a_run_does(tmp_path):
     with pytest.raises(ValueError, match="train-policy needs the run config's training section"):
         run_pipeline(CFG, tmp_path / "run", RunOptions(stages=("train-policy",)))
     assert not (tmp_path / "run").exists()  # refused before anything was made
+
+
+def _counted(run: Path, key: str) -> None:
+    """Append one line to ``runs.txt`` per execution of an item (``key``)."""
+    with open(run / "runs.txt", "a") as f:
+        f.write(key + "\n")
+
+
+def _first_counted(run: Path, cfg: RunConfig, item: EpisodeItem) -> StageOutput:
+    _counted(run, f"first {item.task}/{item.seed}")
+    return StageOutput(None, None, NoopFirstInfo(seed=item.seed, kept=True))
+
+
+def _step_counted(run: Path, cfg: RunConfig, item: EpisodeItem) -> StageOutput:
+    _counted(run, f"step {item.task}/{item.seed}")
+    return StageOutput(None, None, NoopStepInfo(seed=item.seed))
+
+
+def _group_counted(run: Path, cfg: RunConfig, item) -> StageOutput:
+    _counted(run, f"group {item.index}")
+    return StageOutput(None, None, NoopGroupInfo(episodes=sum(ep.ok for ep in item.episodes)))
+
+
+def test_a_change_to_one_task_s_code_makes_that_task_s_items_again_and_keeps_the_others(ray_session, tmp_path, monkeypatch):
+    import anchordp3.pipeline.graph as graph_module
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    first, step, group = noop_graph(2).stages
+    graph = Graph((replace(first, run=_first_counted), replace(step, run=_step_counted), replace(group, run=_group_counted)))
+    hashes = {"place_mouse": "mouse-1", "place_bell": "bell-1"}  # as task_hashes reads each task's module
+    monkeypatch.setattr(graph_module, "task_hashes", lambda entries, tasks, root=None: {t: hashes[t] for t in tasks})
+    cfg = CFG.model_copy(update={"seeds": "0-19"})  # bell 0-19, then mouse 0-19: groups of 16 are bell, bell+mouse, mouse
+    run_pipeline(cfg, tmp_path, RunOptions(progress_interval=60), graph=graph)
+    first_runs = (tmp_path / "runs.txt").read_text().splitlines()
+    assert len(first_runs) == 2 * 40 + 3
+    final = _records(tmp_path, graph, "noop_group")["final"]
+
+    hashes["place_bell"] = "bell-2"  # the bell's expert changed
+    assert stage_changes(cfg, tmp_path, graph) == {s: ["task place_bell"] for s in graph.names}
+    run_pipeline(cfg, tmp_path, RunOptions(progress_interval=60), graph=graph)  # no --force needed
+    again = (tmp_path / "runs.txt").read_text().splitlines()[len(first_runs):]
+    assert sorted(again) == sorted([f"first place_bell/{s}" for s in range(20)] + [f"step place_bell/{s}" for s in range(20)]
+                                   + ["group 0", "group 1"])
+    assert stage_changes(cfg, tmp_path, graph) == {}
+    groups = _records(tmp_path, graph, "noop_group")
+    assert groups["final"].payload(NoopFinalInfo) == final.payload(NoopFinalInfo)  # finished again, the same
+    assert all(read_manifest(tmp_path / graph[s].folder).complete for s in graph.names)
+
+    hashes["place_mouse"] = "mouse-2"
+    run_pipeline(cfg, tmp_path, RunOptions(progress_interval=60, keep_outputs=True), graph=graph)  # kept as made
+    assert len((tmp_path / "runs.txt").read_text().splitlines()) == len(first_runs) + len(again)
+    assert stage_changes(cfg, tmp_path, graph) == {}
