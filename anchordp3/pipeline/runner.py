@@ -235,7 +235,10 @@ class Runner:
             redo |= set(self.names[self.names.index(self.opts.from_stage):])
         if self.opts.force:
             redo |= set(changes)
-        keep = set(adoptable({s: c for s, c in changes.items() if s not in redo})) if self.opts.keep_outputs else set()
+        tasks_only = {s for s in every if s not in changes and s not in redo}  # only some tasks' code changed
+        keep: set[str] = set()
+        if self.opts.keep_outputs:
+            keep = set(adoptable({s: c for s, c in changes.items() if s not in redo})) | tasks_only
         left = {s: c for s, c in changes.items() if s not in redo and s not in keep}
         if left:
             code_only = all("config" not in c for c in left.values())
@@ -245,8 +248,7 @@ class Runner:
                 f"{self.run_dir}: stage(s) {describe_changes(left)} were made with another "
                 f"{'code' if code_only else 'config or code'} than now; refusing to mix old and new outputs: rerun with {hint}")
         restamp = {s for s in stored if s not in changes and written[s] != stored[s]}  # made under a former layout
-        retask = {} if self.opts.keep_outputs else {  # only some tasks' code changed: redo their items alone
-            s: [t for x in c if (t := task_change(x))] for s, c in every.items() if s not in changes and s not in redo}
+        retask = {s: [t for x in every[s] if (t := task_change(x))] for s in tasks_only - keep}  # their items alone redone
         for s in self.names:
             if s in keep:
                 log.info(f"{s}: keeping the outputs other code made ({', '.join(every[s])}), as --keep-outputs asks")
@@ -254,8 +256,8 @@ class Runner:
                 log.info(f"{s}: outputs fingerprinted under an earlier config layout; re-stamped, nothing redone")
             if s in retask:
                 log.info(f"{s}: the code of {', '.join(retask[s])} changed: their items are made again, the other tasks' kept")
-        stores = {s: ManifestStore(self._dir(s), s, self.fps[s], reset=s in redo,
-                                   adopt=s not in redo and s in keep | restamp | set(retask) | (set(every) if self.opts.keep_outputs else set()),
+        adopt = (keep | restamp | set(retask)) - redo
+        stores = {s: ManifestStore(self._dir(s), s, self.fps[s], reset=s in redo, adopt=s in adopt,
                                    payload=self.graph[s].stop_payload, forget=self._items_of(s, retask.get(s, ())))
                   for s in self.names}
         for st in self.chain:
