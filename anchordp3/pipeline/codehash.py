@@ -15,6 +15,7 @@ made by other code (``schemas.manifest.Fingerprint.tasks``).
 
     code_hash(("anchordp3.stages.render",), exclude=task_modules().values())  # 64 hex digits
     task_hashes(("anchordp3.stages.render",), ["place_mouse"])  # {"place_mouse": 16 hex digits}
+    stage_hashes(("anchordp3.stages.render",), ["place_mouse"])  # both, from one walk of the imports
 """
 
 from __future__ import annotations
@@ -98,16 +99,21 @@ def with_parents(name: str) -> list[str]:
 def module_closure(entries: Iterable[str], root: Path | None = None) -> list[str]:
     """Every package module that importing ``entries`` can run, sorted (root: the package folder,
     default ``ROOT``)."""
-    root = Path(root or ROOT)
+    return sorted(import_graph(entries, Path(root or ROOT)))
+
+
+def import_graph(entries: Iterable[str], root: Path) -> dict[str, set[str]]:
+    """Each package module that importing ``entries`` can run -> the package modules its source
+    imports (``imported_modules``; importing one also runs its packages' ``__init__``)."""
     todo = [p for e in entries for p in with_parents(e)]
-    seen: set[str] = set()
+    graph: dict[str, set[str]] = {}
     while todo:
         name = todo.pop()
-        if name in seen or module_path(name, root) is None:
+        if name in graph or module_path(name, root) is None:
             continue
-        seen.add(name)
-        todo.extend(p for m in imported_modules(name, _parse(module_path(name, root)), root) for p in with_parents(m))
-    return sorted(seen)
+        graph[name] = imported_modules(name, _parse(module_path(name, root)), root)
+        todo.extend(p for m in graph[name] for p in with_parents(m))
+    return graph
 
 
 def code_hash(entries: Iterable[str], root: Path | None = None, exclude: Iterable[str] = ()) -> str:
@@ -115,53 +121,7 @@ def code_hash(entries: Iterable[str], root: Path | None = None, exclude: Iterabl
     (root: the package folder, default ``ROOT``), but for the task modules in ``exclude`` that only
     the task registry imports (those ``task_hashes`` covers; a module another one imports stays)."""
     root = Path(root or ROOT)
-    closure = module_closure(entries, root)
-    apart = set(exclude) - imported_elsewhere(closure, set(exclude), root)
-    h = hashlib.sha256()
-    for name in closure:
-        if name not in apart:
-            h.update(f"{name}\0{_digest(module_path(name, root))}\n".encode())
-    return h.hexdigest()
-
-
-def imported_elsewhere(closure: Iterable[str], modules: set[str], root: Path) -> set[str]:
-    """Those of ``modules`` that a module of ``closure`` imports by name, other than the task
-    registry and ``modules`` themselves."""
-    found: set[str] = set()
-    for name in closure:
-        if name != TASKS_PACKAGE and name not in modules:
-            found |= imported_modules(name, _parse(module_path(name, root)), root) & modules
-    return found
-
-
-def task_modules(root: Path | None = None) -> dict[str, str]:
-    """Each task's name -> the module of ``sim/tasks/`` whose class declares its spec
-    (``spec = PLACE_MOUSE``), read from the sources: the simulator is not imported. Empty when the
-    package has no task registry."""
-    from anchordp3.schemas import tasks as specs
-
-    root = Path(root or ROOT)
-    init = module_path(TASKS_PACKAGE, root)
-    if init is None or init.name != "__init__.py":
-        return {}
-    out: dict[str, str] = {}
-    for path in sorted(init.parent.glob("*.py")):
-        if path.stem == "__init__":
-            continue
-        for node in ast.walk(_parse(path)):
-            if isinstance(node, ast.ClassDef):
-                for name in _spec_names(node):
-                    spec = getattr(specs, name, None)
-                    if isinstance(spec, specs.TaskSpec):
-                        out[spec.name] = f"{TASKS_PACKAGE}.{path.stem}"
-    return out
-
-
-def _spec_names(cls: ast.ClassDef) -> list[str]:
-    """The names a class body assigns to ``spec`` (``spec = PLACE_MOUSE`` -> ``["PLACE_MOUSE"]``)."""
-    return [stmt.value.id for stmt in cls.body
-            if isinstance(stmt, ast.Assign) and isinstance(stmt.value, ast.Name)
-            and any(isinstance(t, ast.Name) and t.id == "spec" for t in stmt.targets)]
+    return _code_hash(import_graph(entries, root), set(exclude), root)
 
 
 def task_hashes(entries: Iterable[str], tasks: Iterable[str], root: Path | None = None) -> dict[str, str]:
@@ -169,22 +129,44 @@ def task_hashes(entries: Iterable[str], tasks: Iterable[str], root: Path | None 
     a sha256 over that module's syntax tree and those of the task modules it imports. Tasks the code
     does not reach (a stage that never builds a scene) are left out."""
     root = Path(root or ROOT)
-    modules = task_modules(root)
-    closure = set(module_closure(entries, root))
+    return _task_hashes(import_graph(entries, root), task_modules(root), tasks, root)
+
+
+def stage_hashes(entries: Iterable[str], tasks: Iterable[str], root: Path | None = None) -> tuple[str, dict[str, str]]:
+    """``code_hash`` of ``entries`` without the task modules and their ``task_hashes``, from one
+    walk of the imports (what a data stage's fingerprint holds)."""
+    root = Path(root or ROOT)
+    graph, modules = import_graph(entries, root), task_modules(root)
+    return _code_hash(graph, set(modules.values()), root), _task_hashes(graph, modules, tasks, root)
+
+
+def _code_hash(graph: dict[str, set[str]], exclude: set[str], root: Path) -> str:
+    """sha256 (hex) over the modules of ``graph`` but those of ``exclude`` that no module imports
+    other than the task registry and ``exclude`` themselves."""
+    kept = {m for name, imports in graph.items() if name != TASKS_PACKAGE and name not in exclude for m in imports}
+    h = hashlib.sha256()
+    for name in sorted(graph):
+        if name not in exclude or name in kept:
+            h.update(f"{name}\0{_digest(module_path(name, root))}\n".encode())
+    return h.hexdigest()
+
+
+def _task_hashes(graph: dict[str, set[str]], modules: dict[str, str], tasks: Iterable[str], root: Path) -> dict[str, str]:
+    """``task_hashes`` from the import ``graph`` of a stage's code and ``modules`` (``task_modules``)."""
     family = set(modules.values())
     out: dict[str, str] = {}
     for task in tasks:
         module = modules.get(task)
-        if module is None or module not in closure:
+        if module is None or module not in graph:
             continue
         h = hashlib.sha256()
-        for name in _family_closure(module, family, root):
+        for name in _family_closure(module, family, graph):
             h.update(f"{name}\0{_digest(module_path(name, root))}\n".encode())
         out[task] = h.hexdigest()[:16]
     return out
 
 
-def _family_closure(module: str, family: set[str], root: Path) -> list[str]:
+def _family_closure(module: str, family: set[str], graph: dict[str, set[str]]) -> list[str]:
     """``module`` and the task modules of ``family`` it imports, directly or through one another
     (not through the registry, which imports them all), sorted."""
     todo, seen = [module], set()
@@ -192,8 +174,31 @@ def _family_closure(module: str, family: set[str], root: Path) -> list[str]:
         name = todo.pop()
         if name not in seen:
             seen.add(name)
-            todo.extend(imported_modules(name, _parse(module_path(name, root)), root) & family)
+            todo.extend(graph[name] & family)
     return sorted(seen)
+
+
+def task_modules(root: Path | None = None) -> dict[str, str]:
+    """Each task's name -> the module of ``sim/tasks/`` whose class declares its spec
+    (``spec = PLACE_MOUSE``), read from the sources: the simulator is not imported. Empty when the
+    package has no task registry."""
+    root = Path(root or ROOT)
+    init = module_path(TASKS_PACKAGE, root)
+    if init is None or init.name != "__init__.py":
+        return {}
+    return {task: f"{TASKS_PACKAGE}.{path.stem}" for path in sorted(init.parent.glob("*.py")) if path.stem != "__init__"
+            for task in _declared_tasks(str(path), *_stamp(path))}
+
+
+@lru_cache(maxsize=256)
+def _declared_tasks(path: str, mtime_ns: int, size: int) -> tuple[str, ...]:
+    """The task names whose specs the classes of one version of ``path`` declare (``spec = NAME``)."""
+    from anchordp3.schemas import tasks as specs
+
+    names = [stmt.value.id for node in ast.walk(_parse(Path(path))) if isinstance(node, ast.ClassDef) for stmt in node.body
+             if isinstance(stmt, ast.Assign) and isinstance(stmt.value, ast.Name)
+             and any(isinstance(t, ast.Name) and t.id == "spec" for t in stmt.targets)]
+    return tuple(spec.name for n in names if isinstance(spec := getattr(specs, n, None), specs.TaskSpec))
 
 
 def _parse(path: Path) -> ast.Module:

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import anchordp3
-from anchordp3.pipeline.codehash import code_hash, task_hashes, task_modules
+from anchordp3.pipeline.codehash import stage_hashes
 from anchordp3.schemas.manifest import Fingerprint, P
 from anchordp3.schemas.records import Payload
 from anchordp3.schemas.run import PoolConfig, RunConfig, config_hash
@@ -258,12 +258,12 @@ def fingerprints(cfg: RunConfig, graph: Graph) -> dict[str, Fingerprint]:
     """Each data stage's fingerprint: code version and hash, its config part, its upstream's digest
     (a batch stage's depends on files: ``Stage.fingerprint``)."""
     out: dict[str, Fingerprint] = {}
-    apart = task_modules().values()  # each task's own module counts in its tasks' hashes only
     for st in graph.data_stages:
         up = graph.upstream(st.name)
-        own, before = task_hashes([st.code], cfg.tasks), out[up].tasks if up else {}
+        code, own = stage_hashes([st.code], cfg.tasks)  # each task's own module counts in its task's hash only
+        before = out[up].tasks if up else {}
         tasks = {t: chain_hash(own.get(t, ""), before.get(t, "")) for t in cfg.tasks if t in own or t in before}
-        out[st.name] = Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([st.code], exclude=apart),
+        out[st.name] = Fingerprint(code_version=anchordp3.__version__, code_hash=code,
                                    config_hash=config_hash(st.config(cfg)), upstream={up: out[up].digest()} if up else {},
                                    tasks=tasks)
     return out

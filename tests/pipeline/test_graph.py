@@ -243,7 +243,8 @@ def test_a_change_to_one_task_s_code_makes_that_task_s_items_again_and_keeps_the
     first, step, group = noop_graph(2).stages
     graph = Graph((replace(first, run=_first_counted), replace(step, run=_step_counted), replace(group, run=_group_counted)))
     hashes = {"place_mouse": "mouse-1", "place_bell": "bell-1"}  # as task_hashes reads each task's module
-    monkeypatch.setattr(graph_module, "task_hashes", lambda entries, tasks, root=None: {t: hashes[t] for t in tasks})
+    real = graph_module.stage_hashes
+    monkeypatch.setattr(graph_module, "stage_hashes", lambda entries, tasks, root=None: (real(entries, tasks, root)[0], {t: hashes[t] for t in tasks}))
     cfg = CFG.model_copy(update={"seeds": "0-19"})  # bell 0-19, then mouse 0-19: groups of 16 are bell, bell+mouse, mouse
     run_pipeline(cfg, tmp_path, RunOptions(progress_interval=60), graph=graph)
     first_runs = (tmp_path / "runs.txt").read_text().splitlines()
