@@ -437,26 +437,6 @@ class AnchorDiffusionPolicy(nn.Module):
         drawn per observation (K, one encoder pass); with K > 1 the one returned is their medoid
         (``medoid``), a consensus that drops a stray sample yet stays one of the samples. Call on
         the EMA copy (``ExponentialMovingAverage.averaged_model``) in evaluation."""
-        x, state = self._denoise(obs, generator, steps, samples)
-        if samples > 1:
-            x = medoid(x.view(-1, samples, *x.shape[1:]))
-        return self.from_target(x, state)
-
-    @torch.no_grad()
-    def draws(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None = None,
-              steps: int | None = None, samples: int = 1) -> torch.Tensor:
-        """Every one of the ``samples`` (K) anchor sequences ``predict`` draws per observation,
-        ``(B, K, horizon, action_dim)`` float32 in data units; the first is ``predict``'s draw
-        with ``samples=1`` and the same generator seed."""
-        x, state = self._denoise(obs, generator, steps, samples)
-        anchors = self.from_target(x, state.repeat_interleave(samples, 0))
-        return anchors.view(-1, samples, *anchors.shape[1:])
-
-    def _denoise(self, obs: Mapping[str, torch.Tensor], generator: torch.Generator | None,
-                 steps: int | None, samples: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """DDIM from ``samples`` noise draws per observation (one encoder pass) -> the normalised
-        targets ``(B * K, horizon, action_dim)`` (each observation's K rows together) and the
-        observations' ``state (B, action_dim)``."""
         if samples < 1:
             raise ValueError(f"samples: {samples}, need at least 1")
         scheduler = self.noise_scheduler
@@ -481,7 +461,9 @@ class AnchorDiffusionPolicy(nn.Module):
             with autocast(self.device, self.mixed_precision):
                 out = self.unet(x, t, cond, film=None if table is None else [f[i] for f in table])
             x = scheduler.step(out.float() + shift, t, x).prev_sample
-        return x, state
+        if samples > 1:
+            x = medoid(x.view(b, samples, *x.shape[1:]))
+        return self.from_target(x, state)
 
     def to_target(self, anchors: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """Anchors ``(B, H, D)`` in data units -> the normalised diffusion target ``(B, H, D)``:

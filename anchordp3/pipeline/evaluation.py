@@ -177,8 +177,6 @@ def evaluation_fingerprint(ctx: BatchContext, cfg: RunConfig) -> Fingerprint:
         part["ddim_steps"] = opts.ddim_steps
     if opts.samples != 1:
         part["samples"] = opts.samples
-    if opts.pick != "medoid":  # only when set: the evaluations before the option keep their fingerprint
-        part["pick"] = opts.pick
     if opts.skip_reached:
         part["skip_reached"] = opts.skip_reached
     return Fingerprint(code_version=anchordp3.__version__, code_hash=code_hash([PROTOCOL_MODULE]),  # read, not imported: the driver stays free of the simulator
@@ -200,19 +198,19 @@ def check_evaluation(ctx: BatchContext, cfg: RunConfig) -> None:
                               f"({', '.join(changes)} changed); give another folder, or --force to start over")
 
 
-_MODELS: dict = {}  # (models folder, device, DDIM steps, samples, pick) -> EvalModels: loaded once per worker
+_MODELS: dict = {}  # (models folder, device, DDIM steps, samples) -> EvalModels: loaded once per worker
 
 
-def _models(models_dir: Path, device: str, ddim_steps: int | None, samples: int, pick: str):
+def _models(models_dir: Path, device: str, ddim_steps: int | None, samples: int):
     from anchordp3.stages.evaluate import EvalModels
 
-    key = (str(models_dir), device, ddim_steps, samples, pick)
+    key = (str(models_dir), device, ddim_steps, samples)
     if key not in _MODELS:
         import torch
 
         torch.set_num_threads(1)
         _MODELS.clear()
-        _MODELS[key] = EvalModels(Path(models_dir), device, ddim_steps, samples, pick)
+        _MODELS[key] = EvalModels(Path(models_dir), device, ddim_steps, samples)
     return _MODELS[key]
 
 
@@ -235,8 +233,7 @@ def run_episode(run_dir: Path, cfg: RunConfig, item: BatchItem) -> StageOutput:
     ev = evaluated(cfg)
     opts = ev.evaluation
     task, seed = episode_key(item.id)
-    models = _models(models_folder(run_dir, opts.models), actor_device(opts.device), opts.ddim_steps, opts.samples,
-                     opts.pick)
+    models = _models(models_folder(run_dir, opts.models), actor_device(opts.device), opts.ddim_steps, opts.samples)
     strip = f"strips/{task}/{seed:06d}.png" if seed in selected_seeds(ev, opts)[:opts.strips] else None
     rec = evaluate_episode(task, seed, models, ev, opts.max_decisions, item.folder / strip if strip else None, opts.through,
                            skip_reached=opts.skip_reached).to_dict()

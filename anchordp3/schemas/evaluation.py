@@ -15,8 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 DEFAULT_EPISODES = 10  # unseen seeds per task when neither seeds nor episodes are given
 SKIP_REACHED = 0.015  # metres: the executor steps past a predicted anchor the robot stands within this of (ladder rung D10)
+DECISION_SAMPLES = 8  # anchor sequences drawn per decision, their medoid carried out (ladder rung D17)
 Through = Literal["pose", "joints"]  # how an anchor is carried out: its end-effector poses by IK, or its joints
-Pick = Literal["medoid", "coherent"]  # which of a decision's anchor sequences is carried out
 
 
 class EvalSettings(BaseModel):
@@ -29,8 +29,7 @@ class EvalSettings(BaseModel):
     cpus_per_worker: float = Field(default=1.0, gt=0, description="CPUs each actor reserves.")
     max_decisions: int | None = Field(default=None, ge=1, description="Cap on policy calls per episode (default: only the task's step limit).")
     through: Through = Field(default="pose", description="pose: carry out an anchor through its end-effector poses (IK); joints: through its joint angles (the report).")
-    samples: int = Field(default=1, ge=1, le=64, description="Anchor sequences drawn per decision; their medoid is carried out (1: one sample, as the report).")
-    pick: Pick = Field(default="medoid", description="Which of the drawn sequences is carried out when samples > 1: medoid (the draw nearest the others) or coherent (the draw that goes on with the plan the previous decision made, by its end effectors over the slots both have; the medoid at an episode's first decision).")
+    samples: int = Field(default=DECISION_SAMPLES, ge=1, le=64, description=f"Anchor sequences drawn per decision from one encoding; their medoid, the draw nearest the others, is carried out (default {DECISION_SAMPLES}; 1: one draw, as DP3 and the report).")
     ddim_steps: int | None = Field(default=None, ge=1, le=100, description="DDIM steps per decision (default: the policy's own, 10 as DP3; 5 costs half and, on the shipped policy, +0.1 cm first-anchor error).")
     device: str = Field(default="auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="Torch device of the actors: auto (CUDA when the cluster has GPUs, each actor an equal share), cpu or cuda.")
     first_seed: int | None = Field(default=None, ge=0, description="First unseen evaluation seed (default: max training seed + 1000; it must lie above every training seed).")

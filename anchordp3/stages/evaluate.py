@@ -37,7 +37,7 @@ import torch
 
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.instructions import episode_instruction
-from anchordp3.schemas.evaluation import SKIP_REACHED, Pick
+from anchordp3.schemas.evaluation import DECISION_SAMPLES, SKIP_REACHED
 from anchordp3.schemas.run import RunConfig
 from anchordp3.schemas.stages import AnchorsConfig
 from anchordp3.schemas.state import ARMS, StateLayout
@@ -108,12 +108,10 @@ class EvalRecord:
 class EvalModels:
     """The three trained models of a models folder (``<run>/models``, or shipped ones), loaded once
     per process (EMA policy weights); ``ddim_steps`` overrides the policy's DDIM steps per decision;
-    ``samples`` anchor sequences are drawn per decision (1: one) and one of them carried out, as
-    ``pick`` says (``schemas.evaluation.Pick``: their medoid, or the one ``coherent`` with the
-    previous decision's plan)."""
+    ``samples`` anchor sequences are drawn per decision and their medoid carried out (1: one)."""
 
     def __init__(self, models_dir: Path, device: str | torch.device = "cpu", ddim_steps: int | None = None,
-                 samples: int = 1, pick: Pick = "medoid"):
+                 samples: int = DECISION_SAMPLES):
         d = Path(models_dir)
         for name in ("segmenter", "classifier", "policy"):
             if not (d / name / "model.pt").is_file():
@@ -129,23 +127,16 @@ class EvalModels:
         self.policy.unet.freeze()  # evaluation never changes the weights
         self.ddim_steps = ddim_steps  # None: the policy's own
         self.samples = samples
-        self.pick = pick
 
     def classify(self, text: str) -> int:
         """The model task id the instruction names."""
         return int(self.classifier.predict([text])[0])
 
     @torch.inference_mode()  # no autograd bookkeeping at all: 8 % off a CPU decision (49 -> 45 ms), same anchors
-    def anchors(self, points: np.ndarray, state: np.ndarray, task: int, noise_seed: int,
-                previous: np.ndarray | None = None) -> np.ndarray:
-        """``points (N, 11)``, ``state (32,)`` → the predicted next anchors ``(H, 32)``. previous:
-        what the last decision planned after the anchor it carried out ``(R, 32)``, for ``pick``
-        ``coherent`` (None or empty at an episode's first decision: the medoid)."""
+    def anchors(self, points: np.ndarray, state: np.ndarray, task: int, noise_seed: int) -> np.ndarray:
+        """``points (N, 11)``, ``state (32,)`` → the predicted next anchors ``(H, 32)``."""
         gen = torch.Generator().manual_seed(noise_seed)
         obs = self.observation(points, state, task)
-        if self.pick == "coherent" and self.samples > 1 and previous is not None and len(previous):
-            draws = self.policy.draws(obs, generator=gen, steps=self.ddim_steps, samples=self.samples)[0].cpu().numpy()
-            return draws[coherent(draws, previous)]
         return self.policy.predict(obs, generator=gen, steps=self.ddim_steps, samples=self.samples)[0].cpu().numpy()
 
     def observation(self, points: np.ndarray, state: np.ndarray, task: int) -> dict[str, torch.Tensor]:
@@ -180,24 +171,6 @@ def decision_seed(task: str, seed: int, decision: int) -> int:
 
 
 ROT_REACHED = 0.1  # rot6 entries: an anchor's rotation within about 6 degrees of the arm's counts as reached
-COHERENCE_DECAY = 0.5  # weight of each later slot against the one before in ``coherent``: the nearest anchors count most
-
-
-def coherent(draws: np.ndarray, previous: np.ndarray) -> int:
-    """Which of ``draws (K, H, D)`` (data units) goes on with ``previous (R, D)``, the plan the last
-    decision made for after the anchor it carried out: least weighted distance of both arms' end
-    effectors (metres) over the slots both have, slot h weighted ``COHERENCE_DECAY ** h``
-    (the backward coherence of bidirectional decoding, Liu et al. 2024). A new observation moves
-    every draw; of the modes it leaves, the one the robot was already carrying out is kept, so
-    consecutive decisions do not switch between, say, lifting a block and setting it down."""
-    layout = StateLayout.of_length(draws.shape[-1])
-    n = min(draws.shape[1], len(previous))
-    weights = COHERENCE_DECAY ** np.arange(n)
-    cost = np.zeros(len(draws))
-    for arm in ARMS:
-        xyz = layout.ee_xyz(arm)
-        cost += (np.linalg.norm(draws[:, :n, xyz] - previous[None, :n, xyz], axis=-1) * weights).sum(-1)
-    return int(np.argmin(cost))
 
 
 def first_unreached(pred: np.ndarray, state: np.ndarray, commands: np.ndarray, within: float) -> int:
@@ -224,14 +197,11 @@ def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig, through: str = "p
     metres, the first the robot is not already at, ``first_unreached``) by a smooth motion to its
     end-effector poses (``through="pose"``, IK) or its joint angles (``"joints"``, the report),
     or, for a run of the dense plan (predicted commanded actions), a chunk of ``dense.execute``
-    actions at the plan's spacing. Returns how much of ``pred`` was carried out: ``pred[act(...):]``
-    is what it planned after."""
+    actions at the plan's spacing. Returns the control steps used."""
     if cfg.plan == "dense":
-        ep.follow(pred[:cfg.dense.execute], cfg.dense.action_stride)
-        return cfg.dense.execute
+        return ep.follow(pred[:cfg.dense.execute], cfg.dense.action_stride)
     first = first_unreached(pred, ep.robot.state(), ep.gripper_commands(), skip_reached) if skip_reached else 0
-    ep.execute(pred[first], through)
-    return first + 1
+    return ep.execute(pred[first], through)
 
 
 STRIP_FRAMES = 8  # frames in an episode's strip picture, evenly spaced over its decisions
@@ -298,7 +268,6 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
     if not ep.stable:
         return record(False, 0, ep.step_limit, 0, "unstable")
     decisions = 0
-    planned = None  # what the last decision planned after the anchor it carried out (R, 32)
     joints = [i for a in ARMS for i in range(ep.layout.dim)[ep.layout.qpos(a)]]
     while True:
         conditions = ep.conditions()
@@ -316,10 +285,10 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
             points, _ = frame_features(frames_dict(obs), 0, cfg.features, s)
         except ValueError:
             return record(False, ep.steps, ep.step_limit, decisions, "no_points", conditions)
-        pred = models.anchors(points, obs.state, predicted, s, planned)
+        pred = models.anchors(points, obs.state, predicted, s)
         if watch is not None:
             watch(ep, decisions, points, pred)
-        planned = pred[act(ep, pred, cfg.anchors, through, skip_reached):]
+        act(ep, pred, cfg.anchors, through, skip_reached)
         moved = float(np.abs(ep.robot.state()[joints] - obs.state[joints]).max())
         trace.append(DecisionTrace(moved, tuple(float(g) for g in ep.gripper_commands()), ep.lift()))
         decisions += 1

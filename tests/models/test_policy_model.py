@@ -194,16 +194,6 @@ def test_several_samples_per_decision_return_the_medoid_of_the_single_samples_wi
         policy.predict(obs, samples=0)
 
 
-def test_the_draws_are_the_single_samples_of_the_same_noise_and_hold_the_medoid() -> None:
-    policy, obs = fitted_policy(2)
-    one = {k: v[1:] for k, v in obs.items()}
-    draws = policy.draws(one, generator=torch.Generator().manual_seed(3), samples=4)
-    assert draws.shape == (1, 4, 8, 32)
-    torch.testing.assert_close(draws[0, 0], policy.predict(one, generator=torch.Generator().manual_seed(3))[0])
-    picked = policy.predict(one, generator=torch.Generator().manual_seed(3), samples=4)
-    assert any(torch.allclose(picked[0], d, atol=1e-5) for d in draws[0])
-
-
 def test_retired_levers_read_as_before_when_off_and_are_refused_when_on() -> None:
     """Configs and checkpoints made while the ladder's unkept levers existed: a lever at its "off"
     value reads as today's config, any other value is one error naming the rung."""

@@ -298,7 +298,7 @@ def test_a_watcher_sees_every_decision_before_it_is_carried_out_and_changes_noth
     assert (watched.steps, watched.failure, watched.success) == (plain.steps, plain.failure, plain.success)
 
 
-def test_a_consensus_of_samples_is_a_setting_of_the_evaluation_that_keeps_one_sample_s_records(trained_run):
+def test_the_draws_per_decision_are_a_setting_of_the_evaluation_eight_by_default(trained_run):
     from anchordp3.pipeline.evaluation import eval_run_config, evaluation_fingerprint, models_folder
     from anchordp3.pipeline.graph import BatchContext
     from anchordp3.schemas.evaluation import EvaluationConfig
@@ -310,10 +310,9 @@ def test_a_consensus_of_samples_is_a_setting_of_the_evaluation_that_keeps_one_sa
     def fingerprint(**settings):
         return evaluation_fingerprint(ctx, eval_run_config(trained_run, models_dir, EvaluationConfig(**settings)))
 
-    one = fingerprint()
-    assert fingerprint(samples=1) == one  # evaluations made before the option keep theirs
-    assert fingerprint(samples=8) != one
+    assert fingerprint() == fingerprint(samples=8)  # the default: the medoid of 8 draws (rung D17)
+    assert fingerprint(samples=1) != fingerprint()
     g = torch.Generator().manual_seed(0)
     points, state = torch.rand(256, 11, generator=g).numpy(), torch.rand(32, generator=g).numpy()
     picked = EvalModels(models_dir, samples=4).anchors(points, state, 0, noise_seed=3)
-    assert picked.shape == EvalModels(models_dir).anchors(points, state, 0, noise_seed=3).shape
+    assert picked.shape == EvalModels(models_dir, samples=1).anchors(points, state, 0, noise_seed=3).shape

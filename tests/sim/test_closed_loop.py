@@ -113,24 +113,7 @@ def test_the_executor_carries_out_the_first_anchor_the_robot_does_not_already_st
     held = here.copy()
     held[ep.layout.gripper(ARMS[1])] = 0.7
     assert first_unreached(np.stack([close, away]), held, np.array([1.0, 0.0]), 0.015) == 1
-    assert act(ep, np.stack([near, away]), AnchorsConfig(), "joints", skip_reached=0.015) == 2  # the plan after: pred[2:]
+    act(ep, np.stack([near, away]), AnchorsConfig(), "joints", skip_reached=0.015)
     np.testing.assert_allclose(ep.robot.joint_target(), ep.joint_goal(away), atol=1e-9)
-    assert act(ep, np.stack([ep.robot.state(), away]), AnchorsConfig(), "joints", skip_reached=0.0) == 1  # off: always the first
+    act(ep, np.stack([ep.robot.state(), away]), AnchorsConfig(), "joints", skip_reached=0.0)  # off: always the first
     np.testing.assert_allclose(ep.robot.joint_target(), ep.joint_goal(ep.robot.state()), atol=0.02)
-
-
-def test_the_coherent_draw_goes_on_with_the_previous_plan_though_another_is_the_consensus():
-    from anchordp3.schemas.state import StateLayout
-    from anchordp3.stages.evaluate import coherent
-
-    layout = StateLayout.of_length(32)
-    lift, set_down = np.zeros((8, 32)), np.zeros((8, 32))
-    for h in range(8):
-        for arm in ARMS:
-            lift[h, layout.ee_xyz(arm)] = [0.0, 0.0, 0.1 + 0.02 * h]  # the block goes up
-            set_down[h, layout.ee_xyz(arm)] = [0.0, 0.0, 0.09 - 0.01 * h]  # the block goes back to the table
-    draws = np.stack([set_down, set_down + 1e-3, lift, set_down - 1e-3])  # three draws set it down
-    planned = lift[1:] + 0.005  # the last decision lifted: the rest of its plan, a little off
-    assert coherent(draws, planned) == 2
-    assert coherent(draws, set_down[2:]) in (0, 1, 3)
-    assert coherent(draws, lift[1:2]) == 2  # one slot in common is enough
