@@ -102,16 +102,17 @@ def main() -> int:
         ms = median_ms(decide, args.reps)
         rows.append([f"segmenter + policy, {steps} DDIM steps", f"{ms:.1f}", "-", "-"])
     models.ddim_steps = None
+    drawn = models.samples  # the evaluation's default, the one the rows above time
     for k in [int(x) for x in args.samples.split(",") if x.strip()]:
         models.samples = k
         ms = median_ms(decide, args.reps)
         rows.append([f"segmenter + policy, medoid of {k} samples", f"{ms:.1f}", "-", "-"])
-    models.samples = 1
+    models.samples = drawn
     full = fast["render"] + fast["features"] + fast["segmenter + policy"]
     rows.append(["full decision (render + features + models)", f"{full:.1f}", "-", "-"])
     print(text_table(["one thread, median ms", "fast kernels", "reference kernels", "speed-up"], rows))
     print(f"\nlargest anchor difference fast vs reference: {same:.2e} (data units); DDIM steps "
-          f"{models.policy.config.scheduler.num_inference_steps}; models {models_dir}")
+          f"{models.policy.config.scheduler.num_inference_steps}; draws per decision {drawn}; models {models_dir}")
     from torch.profiler import ProfilerActivity, profile
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         decide()

@@ -47,7 +47,7 @@ import torch  # noqa: E402
 
 from anchordp3.models.objects import object_tokens, token_centroids  # noqa: E402
 from anchordp3.pipeline.evaluation import eval_run_config, models_folder  # noqa: E402
-from anchordp3.schemas.evaluation import EvalOptions  # noqa: E402
+from anchordp3.schemas.evaluation import DECISION_SAMPLES, EvalOptions  # noqa: E402
 from anchordp3.schemas.episode import parse_seeds  # noqa: E402
 from anchordp3.sim.actors import pose_matrix  # noqa: E402
 from anchordp3.sim.episode import build, run_expert  # noqa: E402
@@ -230,7 +230,7 @@ def main() -> int:
     ap.add_argument("--run-dir", type=Path, default=None)
     ap.add_argument("--tasks", default="place_mouse")
     ap.add_argument("--seeds", default="2000-2019")
-    ap.add_argument("--samples", type=int, default=1, help="anchor sequences per decision, their medoid carried out")
+    ap.add_argument("--samples", type=int, default=DECISION_SAMPLES, help="anchor sequences per decision, their medoid carried out (default: the evaluation's)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     opts = EvalOptions(models=args.models, tasks=tuple(args.tasks.split(",")))
