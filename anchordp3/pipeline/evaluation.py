@@ -289,6 +289,21 @@ def summarize(records: Sequence[dict]) -> list[dict]:
     return rows
 
 
+def seeds_phrase(records: Sequence[dict], cfg: RunConfig) -> str:
+    """Where the episodes ran, for the report: ``on seeds disjoint from training (...)``, ``on
+    training seeds (...)`` or, for a mix, how many were training seeds."""
+    seeds = sorted({r["seed"] for r in records})
+    if not seeds:
+        return "(none)"
+    span = f"{seeds[0]}-{seeds[-1]}" if len(seeds) > 1 else str(seeds[0])
+    seen = sum(bool(r["seen"]) for r in records)
+    if seen == 0:
+        return f"on seeds disjoint from training (training seeds {cfg.seeds}; evaluation seeds {span})"
+    if seen == len(records):
+        return f"on training seeds, the scenes the models were trained on ({span} of {cfg.seeds})"
+    return f"on seeds {span}, {seen} of them among the training seeds {cfg.seeds}"
+
+
 def write_reports(out: Path, records: Sequence[dict], cfg: RunConfig, opts: EvalOptions) -> dict[str, Path]:
     """``episodes.parquet``, ``success.png`` and ``report.md`` from the records."""
     import matplotlib
@@ -328,8 +343,7 @@ def write_reports(out: Path, records: Sequence[dict], cfg: RunConfig, opts: Eval
     tmp_png.replace(out / "success.png")
 
     lines = [f"# Closed-loop evaluation: {cfg.name}", "",
-             f"{len(records)} episodes on seeds disjoint from training (training seeds {cfg.seeds}; evaluation seeds "
-             f"from {min(r['seed'] for r in records) if records else '-'}), instructions from held-out phrasing families"
+             f"{len(records)} episodes {seeds_phrase(records, cfg)}, instructions from held-out phrasing families"
              + (f", at most {opts.max_decisions} decisions per episode" if opts.max_decisions else "") + ".", "",
              "| task | episodes | success | rate | 95 % CI | mean steps | mean decisions | classifier correct | failures | conditions unmet at the end |",
              "|---|---|---|---|---|---|---|---|---|---|"]

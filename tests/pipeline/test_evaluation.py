@@ -109,9 +109,11 @@ def test_eval_takes_any_models_tasks_seeds_and_folder_and_marks_training_seeds(t
                        workers=1, max_decisions=1, strips=0)
     records = run_evaluation(None, opts)  # the run config is found beside the models folder
     assert [(r["seed"], r["seen"]) for r in records] == [(0, True), (1, True)]
-    assert (tmp_path / "ev" / "report.md").is_file() and not (trained_run / EVAL_DIR / "ev").exists()
+    assert "on training seeds, the scenes the models were trained on (0-1 of 0-1)" in (tmp_path / "ev" / "report.md").read_text()
+    assert not (trained_run / EVAL_DIR / "ev").exists()
     unseen = run_evaluation(trained_run, EvalOptions(seeds="1500", out=tmp_path / "ev2", workers=1, max_decisions=1))
     assert [(r["seed"], r["seen"]) for r in unseen] == [(1500, False)]
+    assert "on seeds disjoint from training (training seeds 0-1; evaluation seeds 1500)" in (tmp_path / "ev2" / "report.md").read_text()
     with pytest.raises(ValueError, match="--tasks"):
         run_evaluation(trained_run, EvalOptions(tasks=("place_bell",), out=tmp_path / "ev3"))
 
