@@ -27,7 +27,7 @@ from anchordp3.pipeline.graph import BatchContext, BatchItem, StageOutput
 from anchordp3.pipeline.store import StaleStageError, has_manifest, read_summary
 from anchordp3.schemas.manifest import Fingerprint, ItemRecord
 from anchordp3.schemas.records import EvalEpisodeInfo
-from anchordp3.schemas.episode import parse_seeds
+from anchordp3.schemas.episode import SeedSet, parse_seeds
 from anchordp3.schemas.evaluation import DEFAULT_EPISODES, EvalOptions, EvaluationConfig
 from anchordp3.schemas.run import RunConfig, config_hash, load_run_config
 from anchordp3.schemas.training import MODELS
@@ -292,10 +292,9 @@ def summarize(records: Sequence[dict]) -> list[dict]:
 def seeds_phrase(records: Sequence[dict], cfg: RunConfig) -> str:
     """Where the episodes ran, for the report: ``on seeds disjoint from training (...)``, ``on
     training seeds (...)`` or, for a mix, how many were training seeds."""
-    seeds = sorted({r["seed"] for r in records})
-    if not seeds:
+    if not records:
         return "(none)"
-    span = f"{seeds[0]}-{seeds[-1]}" if len(seeds) > 1 else str(seeds[0])
+    span = str(SeedSet((r["seed"], r["seed"]) for r in records))  # the canonical spec, e.g. 0-9 or 1199-1248,1300
     seen = sum(bool(r["seen"]) for r in records)
     if seen == 0:
         return f"on seeds disjoint from training (training seeds {cfg.seeds}; evaluation seeds {span})"
