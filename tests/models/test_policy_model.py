@@ -329,3 +329,43 @@ def test_bad_inputs_are_clear_errors() -> None:
         policy.compute_loss({**batch, "anchors": batch["anchors"][:, :4]})
     with pytest.raises(ValueError, match="task_id"):
         policy.compute_loss({**batch, "task_id": torch.tensor([0, 8])})
+
+
+def test_where_the_robot_came_from_starts_as_no_input_and_then_tells_equal_states_apart() -> None:
+    """``state_encoder.came_from``: a model without it loads into one with it (its input weights start
+    at zero) and predicts the same anchors; trained on two batches alike but for where the robot came
+    from and what comes next, the loss falls below what one state alone allows."""
+    torch.manual_seed(0)
+    plain = AnchorDiffusionPolicy(TINY)
+    config = TINY.model_copy(update={"state_encoder": StateEncoderConfig(hidden_dim=16, came_from=True)})
+    policy = AnchorDiffusionPolicy(config)
+    missing, unexpected = policy.load_state_dict(plain.state_dict(), strict=False)
+    assert missing == ["state_encoder.came_from_in.weight"] and not unexpected
+    batch = samples(4)
+    batch["came_from"] = torch.rand(4, 32)
+    policy.set_normalizers(stats_of(batch))
+    plain.set_normalizers(stats_of(batch))
+    a = plain.predict(batch, generator=torch.Generator().manual_seed(1))
+    b = policy.predict(batch, generator=torch.Generator().manual_seed(1))
+    assert torch.allclose(a, b, atol=1e-6)
+    with pytest.raises(KeyError, match="came_from"):
+        policy.predict({k: v for k, v in batch.items() if k != "came_from"})
+
+    # two modes at one observation: came from low -> go up, came from high -> go down
+    twin = {k: torch.cat([v[:2], v[:2]]) for k, v in batch.items()}
+    twin["came_from"] = torch.cat([torch.zeros(2, 32), torch.ones(2, 32)])
+    twin["anchors"] = torch.cat([torch.ones(2, 8, 32), -torch.ones(2, 8, 32)]) + twin["state"][:, None]
+    losses = {}
+    for name, model in (("plain", AnchorDiffusionPolicy(TINY)), ("came_from", AnchorDiffusionPolicy(config))):
+        model.set_normalizers(stats_of(twin))
+        opt = torch.optim.AdamW(model.parameters(), lr=3e-3)
+        gen = torch.Generator().manual_seed(0)
+        for _ in range(60):
+            loss = model.compute_loss(twin, generator=gen)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        model.eval()
+        pred = model.predict(twin, generator=torch.Generator().manual_seed(2), steps=10)
+        losses[name] = float(((pred - twin["anchors"]) ** 2).mean())
+    assert losses["came_from"] < 0.1 < losses["plain"]
