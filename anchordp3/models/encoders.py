@@ -69,28 +69,16 @@ class TaskConditionedEncoder(nn.Module):
 
 
 class StateEncoder(nn.Module):
-    """Small MLP on the robot state: Linear(in_dim, hidden) -> ReLU -> Linear(hidden, hidden); with
-    ``came_from`` the state the robot came from enters the first layer through its own weights
-    (``came_from_in``, no bias, zero at the start: the encoder then equals one without it).
+    """Small MLP on the robot state: Linear(in_dim, hidden) -> ReLU -> Linear(hidden, hidden).
 
-    state, came_from: (B, in_dim) normalised -> (B, hidden_dim)."""
+    state: (B, in_dim) -> (B, hidden_dim)."""
 
     def __init__(self, config: StateEncoderConfig | None = None) -> None:
         super().__init__()
         config = config or StateEncoderConfig()
         self.net = nn.Sequential(nn.Linear(config.in_dim, config.hidden_dim), nn.ReLU(inplace=True), nn.Linear(config.hidden_dim, config.hidden_dim))
-        self.came_from_in = None
-        if config.came_from:
-            self.came_from_in = nn.Linear(config.in_dim, config.hidden_dim, bias=False)
-            nn.init.zeros_(self.came_from_in.weight)
         self.out_dim = config.hidden_dim
 
-    def forward(self, state: torch.Tensor, came_from: torch.Tensor | None = None) -> torch.Tensor:
-        """state: (B, in_dim) normalised, came_from: (B, in_dim) normalised (needed with
-        ``came_from``) -> (B, hidden_dim)."""
-        if self.came_from_in is None:
-            return self.net(state)
-        if came_from is None:
-            raise ValueError("state encoder: came_from set, but no state the robot came from was given")
-        first, rest = self.net[0], self.net[1:]
-        return rest(first(state) + self.came_from_in(came_from))
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        """state: (B, in_dim) normalised -> (B, hidden_dim)."""
+        return self.net(state)

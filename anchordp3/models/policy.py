@@ -1,7 +1,6 @@
 """The anchor diffusion policy: one observation frame -> the next H anchors (H x 32).
 
 Observation: ``points (B, N, 12)`` (11 features + critical probability), ``state (B, 32)``,
-with ``state_encoder.came_from`` ``came_from (B, 32)`` (the state the robot came from),
 ``task_id (B,)`` (which point encoder, and with ``task_embedding`` which learned task vector, joins
 the condition). With the object head (``config.objects``) the critical points' K clusters
 (``models.objects``) add their own feature to the condition, and with its ``anchored_offsets`` the
@@ -92,8 +91,7 @@ class AnchorDiffusionPolicy(nn.Module):
 
     Batches (``compute_loss``) and observations (``predict``) are dicts of tensors:
     ``points (B, N, point_channels)`` float32, ``state (B, action_dim)`` float32, ``task_id (B,)``
-    long, with role tokens ``roles (B, N)`` integer (each point's role, 0 none), with
-    ``state_encoder.came_from`` ``came_from (B, action_dim)`` float32 (the state the robot came from), and for training
+    long, with role tokens ``roles (B, N)`` integer (each point's role, 0 none), and for training
     ``anchors (B, horizon, action_dim)`` float32, all in data units.
     """
 
@@ -168,9 +166,7 @@ class AnchorDiffusionPolicy(nn.Module):
     def _condition(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor | None]:
         """obs -> (FiLM condition (B, cond_dim), object tokens (B, K, token features) or None)."""
         points, state, task_id = self._observation(obs)
-        came_from = self._came_from(obs, state)
-        parts = [self.point_encoder(self.point_normalizer(points), task_id),
-                 self.state_encoder(self.state_normalizer(state), None if came_from is None else self.state_normalizer(came_from))]
+        parts = [self.point_encoder(self.point_normalizer(points), task_id), self.state_encoder(self.state_normalizer(state))]
         tokens = None
         if self.object_encoder is not None:
             tokens = self._tokens(obs, points, state)
@@ -496,19 +492,6 @@ class AnchorDiffusionPolicy(nn.Module):
         if state.ndim != 2 or state.shape != (points.shape[0], self.config.action_dim):
             raise ValueError(f"state: expected ({points.shape[0]}, {self.config.action_dim}), got {tuple(state.shape)}")
         return points, state, task_id
-
-    def _came_from(self, obs: Mapping[str, torch.Tensor], state: torch.Tensor) -> torch.Tensor | None:
-        """``obs["came_from"] (B, action_dim)`` data units, the state the robot came from, where the state
-        encoder takes it (``state_encoder.came_from``), else None."""
-        if not self.config.state_encoder.came_from:
-            return None
-        if obs.get("came_from") is None:
-            raise KeyError("observation: missing 'came_from' (the state the robot came from), needed by "
-                           "policy.model.state_encoder.came_from")
-        came_from = torch.as_tensor(obs["came_from"], device=self.device, dtype=torch.float32)
-        if came_from.shape != state.shape:
-            raise ValueError(f"came_from: expected {tuple(state.shape)}, got {tuple(came_from.shape)}")
-        return came_from
 
     def _roles(self, obs: Mapping[str, torch.Tensor], points: torch.Tensor) -> torch.Tensor | None:
         """``obs["roles"] (B, N)`` (each point's role, 0 none) where the object head's tokens are roles,

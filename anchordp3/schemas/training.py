@@ -201,13 +201,6 @@ class StateEncoderConfig(_Config):
 
     in_dim: int = Field(default=32, ge=1, description="State length (StateLayout.dim).")
     hidden_dim: int = Field(default=64, ge=1, description="Hidden and output width.")
-    came_from: bool = Field(
-        default=False,
-        description="Also take the state the robot came from: at a decision, the state of the last decision it "
-                    "moved from; in training, the episode's last rest frame before the sample (the previous "
-                    "anchor). At rest, 'just lifted' and 'about to set down' are one state; where the arm came "
-                    "from tells them apart. Its input weights start at zero, so a model trained without it is a "
-                    "start.")
 
 
 class UNetConfig(_Config):

@@ -2,9 +2,8 @@
 
 Each decision: render the four cameras → fused, cropped, FPS-sampled 11-d point features → the
 segmenter's critical probability as the 12th channel → the policy (EMA weights, with the point
-encoder of the task the classifier read from a held-out-family instruction; with
-``state_encoder.came_from`` also the state of the last decision the robot moved from,
-``came_from_now``) predicts the next 8 anchors → the first anchor's joint and gripper targets are executed by a smooth joint-space
+encoder of the task the classifier read from a held-out-family instruction) predicts the next
+8 anchors → the first anchor's joint and gripper targets are executed by a smooth joint-space
 motion timed as the expert times its moves (a run trained on the dense baseline's plan predicts
 the next 8 commanded actions instead, and its first ``dense.execute`` are followed at the plan's
 action spacing). Repeat until success, the task's step limit, or ``max_decisions``. Carrying out
@@ -134,24 +133,20 @@ class EvalModels:
         return int(self.classifier.predict([text])[0])
 
     @torch.inference_mode()  # no autograd bookkeeping at all: 8 % off a CPU decision (49 -> 45 ms), same anchors
-    def anchors(self, points: np.ndarray, state: np.ndarray, task: int, noise_seed: int,
-                came_from: np.ndarray | None = None) -> np.ndarray:
-        """``points (N, 11)``, ``state (32,)``, ``came_from (32,)`` → the predicted next anchors ``(H, 32)``."""
+    def anchors(self, points: np.ndarray, state: np.ndarray, task: int, noise_seed: int) -> np.ndarray:
+        """``points (N, 11)``, ``state (32,)`` → the predicted next anchors ``(H, 32)``."""
         gen = torch.Generator().manual_seed(noise_seed)
-        obs = self.observation(points, state, task, came_from)
+        obs = self.observation(points, state, task)
         return self.policy.predict(obs, generator=gen, steps=self.ddim_steps, samples=self.samples)[0].cpu().numpy()
 
-    def observation(self, points: np.ndarray, state: np.ndarray, task: int,
-                    came_from: np.ndarray | None = None) -> dict[str, torch.Tensor]:
-        """``points (N, 11)``, ``state (32,)``, model task id, ``came_from (32,)`` (the state of the last
-        decision the robot moved from; None at the first, which is the state itself) -> the policy's
-        one-sample observation: the points with the segmenter's critical probability, each point's
-        role (None without a role head), the state, where it came from and the task."""
+    def observation(self, points: np.ndarray, state: np.ndarray, task: int) -> dict[str, torch.Tensor]:
+        """``points (N, 11)``, ``state (32,)``, model task id -> the policy's one-sample observation: the
+        points with the segmenter's critical probability, each point's role (None without a role
+        head), the state and the task."""
         pts = torch.from_numpy(np.asarray(points, dtype=np.float32))[None].to(self.device)
         prob, roles = self.segmenter.predict(pts)
-        vector = lambda x: torch.from_numpy(np.asarray(x, dtype=np.float32))[None].to(self.device)  # noqa: E731
-        return {"points": append_critical_probability(pts, prob), "roles": roles, "state": vector(state),
-                "came_from": vector(state if came_from is None else came_from),
+        return {"points": append_critical_probability(pts, prob), "roles": roles,
+                "state": torch.from_numpy(np.asarray(state, dtype=np.float32))[None].to(self.device),
                 "task_id": torch.tensor([task], dtype=torch.long, device=self.device)}
 
 
@@ -195,16 +190,6 @@ def first_unreached(pred: np.ndarray, state: np.ndarray, commands: np.ndarray, w
                     or np.abs(anchor[layout.ee_rot6(arm)] - state[layout.ee_rot6(arm)]).max() > ROT_REACHED):
                 return h
     return 0
-
-
-def came_from_now(came_from: np.ndarray | None, last: np.ndarray | None, state: np.ndarray, tolerance: float) -> np.ndarray | None:
-    """Where the robot in ``state (D,)`` came from at a decision: the previous decision's state
-    ``last`` where the robot has left it since (some entry more than ``tolerance`` off: a move or a
-    gripper's change, as consecutive anchors differ), else ``came_from`` as it was (None until the
-    robot first moves: the policy then sees the state itself, as at an episode's first anchor)."""
-    if last is not None and np.abs(np.asarray(state) - last).max() > tolerance:
-        return last
-    return came_from
 
 
 def act(ep: EvalEpisode, pred: np.ndarray, cfg: AnchorsConfig, through: str = "pose", skip_reached: float = SKIP_REACHED) -> int:
@@ -282,7 +267,7 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
         return record(False, 0, 0, 0, "layout_failure")
     if not ep.stable:
         return record(False, 0, ep.step_limit, 0, "unstable")
-    decisions, came_from, last = 0, None, None
+    decisions = 0
     joints = [i for a in ARMS for i in range(ep.layout.dim)[ep.layout.qpos(a)]]
     while True:
         conditions = ep.conditions()
@@ -300,9 +285,7 @@ def evaluate_episode(task: str, seed: int, models: EvalModels, cfg: RunConfig,
             points, _ = frame_features(frames_dict(obs), 0, cfg.features, s)
         except ValueError:
             return record(False, ep.steps, ep.step_limit, decisions, "no_points", conditions)
-        came_from = came_from_now(came_from, last, obs.state, cfg.anchors.reached_tolerance)
-        pred = models.anchors(points, obs.state, predicted, s, came_from)
-        last = obs.state
+        pred = models.anchors(points, obs.state, predicted, s)
         if watch is not None:
             watch(ep, decisions, points, pred)
         act(ep, pred, cfg.anchors, through, skip_reached)

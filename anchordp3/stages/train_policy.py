@@ -33,7 +33,6 @@ from anchordp3.models.ema import ExponentialMovingAverage
 from anchordp3.models.encoders import append_critical_probability
 from anchordp3.models.optim import make_lr_schedule, make_optimizer
 from anchordp3.models.policy import AnchorDiffusionPolicy
-from anchordp3.schemas.dataset import ARRAYS
 from anchordp3.schemas.stages import FRAME_KINDS
 from anchordp3.schemas.state import ARMS, rot6_matrices
 from anchordp3.schemas.tasks import TASK_NAMES
@@ -121,29 +120,6 @@ def delta_limits(data: ShardedDataset, batch_size: int = 256) -> dict[str, list]
     return {"min": lo.tolist(), "max": hi.tolist()}
 
 
-def came_from_of_episode(states: np.ndarray, timestep: np.ndarray, kind: np.ndarray) -> np.ndarray:
-    """Where the robot came from at each frame of one episode: the state of the episode's last
-    ``rest`` frame (the robot at rest at an anchor, where a decision is taken) with an earlier
-    timestep, or the frame's own state where there is none (the first decision). ``states (F, D)``,
-    ``timestep (F,)``, ``kind (F,)`` (``FRAME_KINDS`` codes) -> ``(F, D)`` float32, data units."""
-    rest = np.flatnonzero(kind == FRAME_KINDS.index("rest"))
-    rest = rest[np.argsort(timestep[rest], kind="stable")]
-    last = np.searchsorted(timestep[rest], timestep, side="left") - 1  # the last rest frame before each frame
-    out = np.array(states, dtype=np.float32, copy=True)
-    has = last >= 0
-    out[has] = states[rest[last[has]]]
-    return out
-
-
-def came_from_states(data: ShardedDataset) -> np.ndarray:
-    """``came_from_of_episode`` over every episode: ``(samples, D) float32`` by global sample index."""
-    out = np.zeros((len(data), *ARRAYS["state"].shape(data.info.n_points)), dtype=np.float32)
-    for entry in data.episodes():
-        frames = data.episode_arrays(entry, ("state",))
-        out[entry.start:entry.stop] = came_from_of_episode(frames["state"], frames["timestep"], frames["kind"])
-    return out
-
-
 class PolicyJob(TrainingJob):
     """The policy's training on one dataset (see ``TrainingJob``)."""
 
@@ -165,7 +141,6 @@ class PolicyJob(TrainingJob):
         if int(self.task_lut.max()) >= self.cfg.model.num_tasks:
             raise ValueError(f"policy.model.num_tasks: {self.cfg.model.num_tasks} encoders, but the dataset's tasks "
                              f"{data.tasks} need ids up to {int(self.task_lut.max())}")
-        self.came_from = torch.from_numpy(came_from_states(data)) if self.cfg.model.state_encoder.came_from else None
         self._delta_stats: dict[str, list] | None = None
         self._decisions: list[int] | None = None
         self.train_ds = SplitDataset(data, "train", keys=POLICY_KEYS)
@@ -215,8 +190,7 @@ class PolicyJob(TrainingJob):
     def observation(self, batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """A loader batch -> the policy's batch on the device: ``points (B, N, 12)`` (features +
         critical probability), ``roles (B, N)`` (each point's role: the segmenter's, or the label),
-        ``state (B, 32)``, with ``state_encoder.came_from`` ``came_from (B, 32)`` (``came_from_states``),
-        ``task_id (B,)`` model ids, ``anchors (B, H, 32)``."""
+        ``state (B, 32)``, ``task_id (B,)`` model ids, ``anchors (B, H, 32)``."""
         if self.probabilities is not None:
             prob = self.probabilities[batch["index"]].float()
             roles = self.roles[batch["index"]] if self.roles is not None else (prob > 0.5).to(torch.uint8)
@@ -226,8 +200,6 @@ class PolicyJob(TrainingJob):
         points = append_critical_probability(batch["points"], prob)
         out = {"points": points, "roles": roles, "state": batch["state"], "anchors": batch["anchors"],
                "task_id": self.task_lut[batch["task_id"]]}
-        if self.came_from is not None:
-            out["came_from"] = self.came_from[batch["index"]]
         return to_device(out, self.device)
 
     def batches(self, start_step: int) -> Iterator[dict[str, torch.Tensor]]:

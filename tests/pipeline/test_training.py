@@ -315,35 +315,3 @@ def test_the_first_anchors_rotation_error_is_the_angle_between_the_rotations():
     assert rotation_error_deg(true, true) == pytest.approx([0.0] * 4, abs=1e-4)
     assert rotation_error_deg(turned, true) == pytest.approx([0.0, 30.0, 10.0, 180.0], abs=0.01)
     assert rotation_error_deg(turned * 1.7 + 0.01, true) == pytest.approx([0.0, 30.0, 10.0, 180.0], abs=1.5)  # off the manifold
-
-
-def test_where_the_robot_came_from_is_the_episodes_last_rest_frame_before_the_sample(trained, tmp_path):
-    """``came_from_states``: a rest frame (a decision) came from the rest frame before it, the first
-    (home, timestep 0) from itself, an expert or DAgger frame from the rest frame its interval
-    started at; a policy with ``state_encoder.came_from`` trains on them and reloads."""
-    from anchordp3.schemas.stages import FRAME_KINDS
-    from anchordp3.stages.train_policy import came_from_states
-
-    run, _, _ = trained
-    data = open_dataset(stage_dir(run, "write"))
-    came = came_from_states(data)
-    rest, kinds_seen = FRAME_KINDS.index("rest"), set()
-    for entry in data.episodes():
-        frames = data.episode_arrays(entry, ("state",))
-        t, kind, state = frames["timestep"], frames["kind"], frames["state"]
-        rests = sorted((int(t[i]), i) for i in range(len(t)) if kind[i] == rest)
-        assert rests[0][0] == 0 and len(rests) > 2
-        for i in range(len(t)):
-            earlier = [j for ti, j in rests if ti < t[i]]
-            assert (came[entry.start + i] == (state[earlier[-1]] if earlier else state[i])).all()
-            kinds_seen.add(FRAME_KINDS[kind[i]])
-    assert kinds_seen == {"rest", "expert", "dagger"}
-
-    cfg = tiny_cfg(steps=6).model_dump(mode="json")
-    cfg["policy"]["model"]["state_encoder"] = {"came_from": True}
-    job = PolicyJob(data, TrainingConfig.model_validate(cfg), torch.device("cpu"), CriticalChannel("ground_truth"))
-    batch = next(job.batches(0))
-    assert torch.equal(job.observation(batch)["came_from"], torch.from_numpy(came)[batch["index"]])
-    res = run_training(job, tmp_path / "policy", job.loop, "fp")
-    policy = load_policy(res.model_path)
-    assert res.finished and policy.state_encoder.came_from_in is not None

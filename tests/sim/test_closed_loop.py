@@ -91,19 +91,6 @@ def test_executing_through_the_pose_puts_the_gripper_where_the_anchor_says_despi
         ep.execute(wrong, through="elbows")
 
 
-def test_the_executor_remembers_the_last_decision_the_robot_moved_from():
-    from anchordp3.stages.evaluate import came_from_now
-
-    home, lifted, closed = np.zeros(32), np.zeros(32), np.zeros(32)
-    lifted[14] = 0.05  # an arm's end effector 5 cm higher
-    closed[12] = 1.0  # a gripper's change alone
-    assert came_from_now(None, None, home, 0.01) is None  # the first decision: nothing yet
-    assert came_from_now(None, home, home + 0.005, 0.01) is None  # still where it began
-    assert came_from_now(None, home, lifted, 0.01) is home
-    assert came_from_now(home, lifted, lifted + 0.002, 0.01) is home  # a stall keeps where it came from
-    assert came_from_now(home, lifted, lifted + closed, 0.01) is lifted
-
-
 def test_the_executor_carries_out_the_first_anchor_the_robot_does_not_already_stand_at(episode):
     from anchordp3.schemas.stages import AnchorsConfig
     from anchordp3.stages.evaluate import act, first_unreached
